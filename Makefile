@@ -1,0 +1,36 @@
+# Two commands do everything on a fresh machine: `make test` and `make demo`.
+# Both create .venv, install system and Python packages, then run.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.wreckmap-installed
+
+.PHONY: setup test test-fast lint demo bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml deploy/setup.sh deploy/system-packages.txt
+	PYTHON=$(PYTHON) VENV=$(VENV) bash deploy/setup.sh
+	touch $(STAMP)
+
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check shared
+	$(BIN)/mypy
+
+test: lint
+	$(BIN)/pytest
+
+# Skips tests marked slow: for a quick loop while editing.
+test-fast: setup
+	$(BIN)/pytest -m "not slow and not hardware and not gpu"
+
+demo: setup
+	$(BIN)/python -m field.demo --out demo-output
+
+bench: setup
+	$(BIN)/python -m bench
+
+clean:
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-output bench-output

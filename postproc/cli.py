@@ -1,0 +1,26 @@
+"""`wreckmap-post`: the lab batch (slam, depth, merge, sfm, dense, run)."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+from shared import cli
+
+DESCRIPTION = """\
+wreckmap lab post-processing.
+
+example:
+  wreckmap-post slam sessions/dive1 --out results/dive1/slam
+"""
+
+# Command groups, in the order data flows through the stages.
+COMMAND_MODULES: tuple[str, ...] = ()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return cli.run("wreckmap-post", DESCRIPTION, COMMAND_MODULES, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Thin command-line layer of `wreckmap-post`, one module per command group."""
