@@ -1,0 +1,57 @@
+"""The MCAP archive: the contract between the field tools (writers) and the lab (readers).
+
+Archives are MCAP files with the ROS 2 profile: CDR messages, `ros2msg`
+schemas, standard message types where one exists, so Foxglove, rosbag2 and
+`rosbags` open them. Times are int64 nanoseconds since the UNIX epoch.
+"""
+
+from __future__ import annotations
+
+from shared.archive.messages import (
+    ArchiveMessage,
+    CompressedImage,
+    CompressedVideo,
+    DepthSample,
+    Imu,
+    SessionInfo,
+)
+from shared.archive.reader import (
+    ArchiveReader,
+    ImuSeries,
+    RawRecord,
+    TopicInfo,
+    iter_records_salvage,
+)
+from shared.archive.rosbag2 import write_rosbag2_metadata
+from shared.archive.topics import (
+    SESSION_TOPIC,
+    depth_topic,
+    image_topic,
+    imu_topic,
+    message_type_for_topic,
+    video_topic,
+)
+from shared.archive.writer import ArchiveWriter, part_path
+
+__all__ = [
+    "SESSION_TOPIC",
+    "ArchiveMessage",
+    "ArchiveReader",
+    "ArchiveWriter",
+    "CompressedImage",
+    "CompressedVideo",
+    "DepthSample",
+    "Imu",
+    "ImuSeries",
+    "RawRecord",
+    "SessionInfo",
+    "TopicInfo",
+    "depth_topic",
+    "image_topic",
+    "imu_topic",
+    "iter_records_salvage",
+    "message_type_for_topic",
+    "part_path",
+    "video_topic",
+    "write_rosbag2_metadata",
+]
