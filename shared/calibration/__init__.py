@@ -1,0 +1,1 @@
+"""Camera and IMU calibration: camera models, Kalibr YAML files, AprilGrid targets."""
