@@ -15,7 +15,7 @@ example:
 """
 
 # Command groups, in the order data flows through the stages.
-COMMAND_MODULES: tuple[str, ...] = ()
+COMMAND_MODULES: tuple[str, ...] = ("postproc.commands.depth",)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,527 @@
+"""The depth stage: put a trajectory at its true depth with a dive computer's profile.
+
+Inputs: any TUM trajectory in a gravity-aligned frame with z up (ours,
+SVIn2's, ORB-SLAM3's with an IMU) on the camera clock, and a dive CSV or a
+dive folder (`dives.json` plus CSVs; the dive that overlaps is found). The
+depth estimated is the depth of the frame the TUM file holds: body (IMU)
+poses for `trajectory.tum`, camera poses for `keyframes.tum`. The dive
+computer on the wrist is taken to be at that frame's depth; the lever arm
+between them is noise (`depth_sigma_m`).
+
+Outputs in `out_dir`:
+
+* `sync.json`: the dive-computer clock against the camera clock
+  (`time_offset_s`: dive-computer time minus camera time at
+  `reference_time_s`, the trajectory's first stamp; `drift_ppm`), the depth
+  relation `depth = depth_offset_m - depth_scale * z`, the residual RMS, and
+  one-sigma uncertainties (Gauss-Newton covariance scaled by the residual
+  variance). Written last: its presence means the stage is done.
+* `trajectory_world.tum`: the trajectory in the world frame (z = -depth,
+  0 at the surface; x, y, yaw and the camera clock kept).
+* `trajectory_world_fused.tum` (when `fuse`): re-optimised with depth factors
+  so vertical VIO drift is removed along the dive, not only shifted.
+* `depth_sync.png`: before/after profiles and the regression scatter.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from postproc.depth.sync import (
+    QUANTISATION_SIGMA_M,
+    CoarseCandidate,
+    DepthSync,
+    SyncError,
+    coarse_offset_search,
+    depth_variation_m,
+    fit_depth_sync,
+    valid_mask,
+)
+from shared.clock import NS_PER_S, ClockModel
+from shared.errors import InputError, StageError
+from shared.formats.diveprofile import DiveProfile, read_dive_folder, read_profile
+from shared.formats.tum import read_tum, write_tum
+from shared.fsutil import write_text_atomic
+from shared.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+SYNC_NAME = "sync.json"
+WORLD_NAME = "trajectory_world.tum"
+FUSED_NAME = "trajectory_world_fused.tum"
+PLOT_NAME = "depth_sync.png"
+
+_HINT = (
+    "give the clock offset by hand with --time-offset SECONDS (dive-computer time minus camera "
+    "time; options.time_offset_s), or check that the dive and the trajectory are of the same dive"
+)
+
+
+@dataclass(kw_only=True)
+class DepthOptions:
+    """Options of the depth stage (units in the names).
+
+    method: "ours" (coarse search then robust Gauss-Newton) or "paper" (the
+        paper's 100 Hz cross-correlation and linear regression).
+    max_offset_s: largest |dive-computer minus camera| clock offset searched,
+        seconds (default 15 h: local wall-clock zones reach +-14 h).
+    time_offset_s: the offset when known (dive minus camera at the trajectory's
+        first stamp, seconds): the search is skipped and the offset (and a
+        zero drift) kept; for a flat profile or a dive that cannot be matched.
+    estimate_drift: estimate the dive computer's clock drift (ppm).
+    drift_prior_sigma_ppm: zero-mean prior on the drift (one sigma, ppm);
+        one dive constrains drift only weakly.
+    estimate_scale: estimate depth_scale; otherwise it stays 1 and the
+        scale the data would give is reported as `depth_scale_free`.
+    fuse: re-optimise the trajectory with depth factors (GTSAM).
+    depth_sigma_m: one-sigma error of a depth sample as the depth of the
+        trajectory frame (0.1 m resolution, wrist-camera lever arm, waves), m.
+    odometry_sigma_m_per_sqrt_s: VIO position drift for the fusion, m/sqrt(s).
+    odometry_sigma_rad_per_sqrt_s: VIO rotation drift for the fusion, rad/sqrt(s).
+    node_interval_s: shortest time between optimised poses in the fusion, s.
+    search_step_s: grid step of the coarse offset search, s.
+    min_overlap_fraction: share of the possible dive samples that must fall in
+        the trajectory for an offset to count.
+    max_gap_s: trajectory gaps longer than this (tracking lost) hold no depth, s.
+    min_depth_range_m: the overlapping profile must span at least this
+        (5-95 percentile), m; flatter profiles cannot give a clock offset.
+    max_time_sigma_s: a clock offset less certain than this is refused, s.
+    plot: write depth_sync.png.
+    """
+
+    method: Literal["ours", "paper"] = "ours"
+    max_offset_s: float = 15.0 * 3600.0
+    time_offset_s: float | None = None
+    estimate_drift: bool = True
+    drift_prior_sigma_ppm: float = 50.0
+    estimate_scale: bool = False
+    fuse: bool = True
+    depth_sigma_m: float = math.hypot(QUANTISATION_SIGMA_M, 0.05)
+    odometry_sigma_m_per_sqrt_s: float = 0.01
+    odometry_sigma_rad_per_sqrt_s: float = 0.001
+    node_interval_s: float = 1.0
+    search_step_s: float = 1.0
+    min_overlap_fraction: float = 0.5
+    max_gap_s: float = 5.0
+    min_depth_range_m: float = 1.0
+    max_time_sigma_s: float = 5.0
+    plot: bool = True
+
+
+@dataclass
+class _DiveData:
+    profile: DiveProfile
+    label: str
+    t_s: npt.NDArray[np.float64]  # dive clock minus the reference, seconds
+    depth_m: npt.NDArray[np.float64]
+
+
+def run(
+    options: DepthOptions,
+    trajectory_path: Path | str,
+    dive_path: Path | str,
+    out_dir: Path | str,
+    *,
+    overwrite: bool = False,
+) -> Path:
+    """Estimate the dive clock and depth relation, write the world trajectory; returns sync.json.
+
+    Skips the work when `out_dir/sync.json` exists and `overwrite` is false.
+    Raises InputError for unreadable inputs, StageError when the dive does not
+    overlap the trajectory or its profile is too flat to give a clock offset.
+    """
+    out = Path(out_dir)
+    sync_path = out / SYNC_NAME
+    if sync_path.exists() and not overwrite:
+        log.info("%s exists: depth stage already done (overwrite to redo)", sync_path)
+        return sync_path
+    trajectory_path = Path(trajectory_path)
+    dive_path = Path(dive_path)
+    _check_options(options)
+    trajectory = read_tum(trajectory_path)
+    if len(trajectory) < 2:
+        raise InputError(f"{trajectory_path}: {len(trajectory)} pose(s) (need at least 2)")
+    reference_ns = int(trajectory.stamps_ns[0])
+    traj_t = (trajectory.stamps_ns - reference_ns).astype(np.float64) / NS_PER_S
+    traj_z = trajectory.positions[:, 2].copy()
+    dives = _read_dives(dive_path, reference_ns)
+
+    candidates: list[CoarseCandidate] = []
+    if options.method == "paper":
+        sync, dive = _paper(options, traj_t, traj_z, dives)
+    elif options.time_offset_s is not None:
+        sync, dive = _given_offset(options, traj_t, traj_z, dives)
+    else:
+        sync, dive, candidates = _search(options, traj_t, traj_z, dives)
+
+    scale_free: DepthSync | None = None
+    if options.method == "ours" and not options.estimate_scale:
+        scale_free = _fit(
+            options,
+            traj_t,
+            traj_z,
+            dive,
+            sync.time_offset_s,
+            time=False,
+            scale=True,
+            drift_ppm=sync.drift_ppm,
+        )
+        if abs(scale_free.depth_scale - 1.0) > max(3.0 * scale_free.depth_scale_sigma, 0.05):
+            log.warning(
+                "the depth data suggest a z scale of %.3f +- %.3f (kept at 1; "
+                "use estimate_scale / --estimate-scale to apply it)",
+                scale_free.depth_scale,
+                scale_free.depth_scale_sigma,
+            )
+
+    world = _world_trajectory(trajectory, sync)
+    out.mkdir(parents=True, exist_ok=True)
+    write_tum(out / WORLD_NAME, world, overwrite=overwrite)
+    fused: Trajectory | None = None
+    sample_cam_t = sync.camera_time_s(dive.t_s)
+    if options.fuse:
+        fused = _fuse(options, traj_t, world, sample_cam_t, dive.depth_m)
+        write_tum(out / FUSED_NAME, fused, overwrite=overwrite)
+    if options.plot:
+        from postproc.depth.plots import plot_depth_sync
+
+        plot_depth_sync(
+            out / PLOT_NAME,
+            traj_t_s=traj_t,
+            traj_z_m=traj_z,
+            dive_t_s=dive.t_s,
+            dive_depth_m=dive.depth_m,
+            sync=sync,
+            fused_z_m=None if fused is None else fused.positions[:, 2],
+            title=f"{trajectory_path.name} vs {dive.label} ({options.method})",
+            overwrite=overwrite,
+        )
+    document = _sync_document(
+        options,
+        trajectory_path,
+        dive,
+        reference_ns,
+        sync,
+        scale_free,
+        candidates,
+        world,
+        fused,
+        traj_t,
+        traj_z,
+        sample_cam_t,
+    )
+    write_text_atomic(sync_path, json.dumps(document, indent=2) + "\n", overwrite=overwrite)
+    return sync_path
+
+
+def _check_options(options: DepthOptions) -> None:
+    if options.method not in ("ours", "paper"):
+        raise StageError(f"depth: unknown method {options.method!r} (expected 'ours' or 'paper')")
+    positive = {
+        "max_offset_s": options.max_offset_s,
+        "depth_sigma_m": options.depth_sigma_m,
+        "search_step_s": options.search_step_s,
+        "node_interval_s": options.node_interval_s,
+        "drift_prior_sigma_ppm": options.drift_prior_sigma_ppm,
+        "max_gap_s": options.max_gap_s,
+    }
+    for name, value in positive.items():
+        if not (value > 0.0 and math.isfinite(value)):
+            raise StageError(f"depth: {name} must be a positive number, got {value}")
+    if options.time_offset_s is not None and not math.isfinite(options.time_offset_s):
+        raise StageError(f"depth: time_offset_s must be finite, got {options.time_offset_s}")
+
+
+def _read_dives(path: Path, reference_ns: int) -> list[_DiveData]:
+    if path.is_dir():
+        profiles = read_dive_folder(path)
+        labels = [f"{path.name}/{p.start_iso}" for p in profiles]
+    else:
+        profiles = [read_profile(path)]
+        labels = [path.name]
+    reference_s = reference_ns / NS_PER_S
+    dives = []
+    for profile, label in zip(profiles, labels, strict=True):
+        keep = np.isfinite(profile.depth_m)
+        if np.count_nonzero(keep) < 3:
+            log.info("%s: fewer than 3 depth samples, skipped", label)
+            continue
+        dives.append(
+            _DiveData(
+                profile=profile,
+                label=label,
+                # Whole seconds first keeps float precision: both numbers are ~1.7e9.
+                t_s=profile.stamps_s[keep] - reference_s,
+                depth_m=profile.depth_m[keep],
+            )
+        )
+    if not dives:
+        raise InputError(f"{path}: no dive with at least 3 depth samples")
+    return dives
+
+
+def _fit(
+    options: DepthOptions,
+    traj_t: npt.NDArray[np.float64],
+    traj_z: npt.NDArray[np.float64],
+    dive: _DiveData,
+    offset_s: float,
+    *,
+    time: bool,
+    scale: bool,
+    drift_ppm: float = 0.0,
+) -> DepthSync:
+    return fit_depth_sync(
+        traj_t,
+        traj_z,
+        dive.t_s,
+        dive.depth_m,
+        initial_offset_s=offset_s,
+        initial_drift_ppm=drift_ppm,
+        estimate_time=time,
+        estimate_drift=options.estimate_drift and time,
+        estimate_scale=scale,
+        drift_prior_sigma_ppm=options.drift_prior_sigma_ppm,
+        max_gap_s=options.max_gap_s,
+    )
+
+
+def _search(
+    options: DepthOptions,
+    traj_t: npt.NDArray[np.float64],
+    traj_z: npt.NDArray[np.float64],
+    dives: list[_DiveData],
+) -> tuple[DepthSync, _DiveData, list[CoarseCandidate]]:
+    best: tuple[DepthSync, _DiveData, list[CoarseCandidate]] | None = None
+    reasons = []
+    for dive in dives:
+        try:
+            coarse = coarse_offset_search(
+                traj_t,
+                traj_z,
+                dive.t_s,
+                dive.depth_m,
+                max_offset_s=options.max_offset_s,
+                step_s=options.search_step_s,
+                min_overlap_fraction=options.min_overlap_fraction,
+                max_gap_s=options.max_gap_s,
+            )
+        except SyncError as error:
+            reasons.append(f"{dive.label}: {error}")
+            continue
+        for candidate in coarse.candidates:
+            try:
+                sync = _fit(
+                    options,
+                    traj_t,
+                    traj_z,
+                    dive,
+                    candidate.offset_s,
+                    time=True,
+                    scale=options.estimate_scale,
+                )
+            except SyncError:
+                continue
+            if best is None or sync.robust_scale_m < best[0].robust_scale_m:
+                best = (sync, dive, coarse.candidates)
+    if best is None:
+        raise StageError(
+            f"the dive profile does not overlap the trajectory within +-{options.max_offset_s:.0f}"
+            f" s ({'; '.join(reasons) or 'no fit converged'}); {_HINT}"
+        )
+    sync, dive, candidates = best
+    depth_range, z_range = depth_variation_m(
+        traj_t, traj_z, dive.t_s, dive.depth_m, sync, max_gap_s=options.max_gap_s
+    )
+    if min(depth_range, z_range) < options.min_depth_range_m:
+        raise StageError(
+            f"{dive.label}: the depth profile is too flat to find the clock offset (depth spans "
+            f"{depth_range:.2f} m, trajectory z {z_range:.2f} m where they overlap; need "
+            f"{options.min_depth_range_m:.2f} m); {_HINT}"
+        )
+    if not sync.time_offset_sigma_s <= options.max_time_sigma_s:
+        raise StageError(
+            f"{dive.label}: the clock offset is undetermined ({sync.time_offset_s:.1f} +- "
+            f"{sync.time_offset_sigma_s:.1f} s: nothing to correlate); {_HINT}"
+        )
+    log.info(
+        "%s: clock offset %.3f +- %.3f s, drift %.1f +- %.1f ppm, depth offset %.3f m",
+        dive.label,
+        sync.time_offset_s,
+        sync.time_offset_sigma_s,
+        sync.drift_ppm,
+        sync.drift_sigma_ppm,
+        sync.depth_offset_m,
+    )
+    return sync, dive, candidates
+
+
+def _overlap_count(
+    traj_t: npt.NDArray[np.float64], dive: _DiveData, offset_s: float, max_gap_s: float
+) -> int:
+    return int(np.count_nonzero(valid_mask(traj_t, dive.t_s - offset_s, max_gap_s=max_gap_s)))
+
+
+def _given_offset(
+    options: DepthOptions,
+    traj_t: npt.NDArray[np.float64],
+    traj_z: npt.NDArray[np.float64],
+    dives: list[_DiveData],
+) -> tuple[DepthSync, _DiveData]:
+    offset = float(options.time_offset_s or 0.0)
+    counts = [_overlap_count(traj_t, d, offset, options.max_gap_s) for d in dives]
+    best = int(np.argmax(counts))
+    if counts[best] < 3:
+        raise StageError(
+            f"with the given clock offset {offset:+.1f} s no dive has 3 samples inside the "
+            f"trajectory ({', '.join(d.label for d in dives)}); check --time-offset (dive-computer"
+            " time minus camera time at the trajectory's first stamp)"
+        )
+    dive = dives[best]
+    return _fit(
+        options, traj_t, traj_z, dive, offset, time=False, scale=options.estimate_scale
+    ), dive
+
+
+def _paper(
+    options: DepthOptions,
+    traj_t: npt.NDArray[np.float64],
+    traj_z: npt.NDArray[np.float64],
+    dives: list[_DiveData],
+) -> tuple[DepthSync, _DiveData]:
+    from postproc.depth.paper import paper_depth_sync
+
+    prior = float(options.time_offset_s or 0.0)
+    counts = [_overlap_count(traj_t, d, prior, options.max_gap_s) for d in dives]
+    dive = dives[int(np.argmax(counts))]
+    try:
+        sync = paper_depth_sync(
+            traj_t,
+            traj_z,
+            dive.t_s,
+            dive.depth_m,
+            prior_offset_s=prior,
+            max_gap_s=options.max_gap_s,
+        )
+    except SyncError as error:
+        raise StageError(f"{dive.label}: {error}; {_HINT}") from None
+    return sync, dive
+
+
+def _world_trajectory(trajectory: Trajectory, sync: DepthSync) -> Trajectory:
+    poses = trajectory.poses.copy()
+    poses[:, 2, 3] = sync.world_z_m(trajectory.positions[:, 2])
+    return Trajectory(trajectory.stamps_ns.copy(), poses)
+
+
+def _fuse(
+    options: DepthOptions,
+    traj_t: npt.NDArray[np.float64],
+    world: Trajectory,
+    sample_cam_t: npt.NDArray[np.float64],
+    depth_m: npt.NDArray[np.float64],
+) -> Trajectory:
+    from postproc.depth.factors import FusionSettings, fuse_depth
+
+    settings = FusionSettings(
+        depth_sigma_m=options.depth_sigma_m,
+        odometry_sigma_m_per_sqrt_s=options.odometry_sigma_m_per_sqrt_s,
+        odometry_sigma_rad_per_sqrt_s=options.odometry_sigma_rad_per_sqrt_s,
+        node_interval_s=options.node_interval_s,
+    )
+    result = fuse_depth(traj_t, world.poses, sample_cam_t, -depth_m, settings=settings)
+    log.info(
+        "depth fusion: %d nodes, %d depth factors, error %.1f -> %.1f in %d iterations",
+        result.nodes.size,
+        result.depth_factors,
+        result.error_before,
+        result.error_after,
+        result.iterations,
+    )
+    return Trajectory(world.stamps_ns.copy(), result.poses)
+
+
+def _number(value: float) -> float | None:
+    return None if not math.isfinite(value) else float(value)
+
+
+def _sync_document(
+    options: DepthOptions,
+    trajectory_path: Path,
+    dive: _DiveData,
+    reference_ns: int,
+    sync: DepthSync,
+    scale_free: DepthSync | None,
+    candidates: list[CoarseCandidate],
+    world: Trajectory,
+    fused: Trajectory | None,
+    traj_t: npt.NDArray[np.float64],
+    traj_z: npt.NDArray[np.float64],
+    sample_cam_t: npt.NDArray[np.float64],
+) -> dict[str, Any]:
+    clock = ClockModel(
+        offset_ns=round(sync.time_offset_s * NS_PER_S),
+        drift_ppm=sync.drift_ppm,
+        reference_ns=reference_ns,
+    )
+    profile = dive.profile
+    residual = dive.depth_m - sync.depth_m(np.interp(sample_cam_t, traj_t, traj_z))
+    inside = valid_mask(traj_t, sample_cam_t, max_gap_s=options.max_gap_s)
+    document: dict[str, Any] = {
+        "method": options.method,
+        "trajectory": trajectory_path.name,
+        "frame": "depth of the frame the TUM file holds (body poses: IMU; camera poses: camera)",
+        "dive": {
+            "label": dive.label,
+            "start": profile.start_iso,
+            "model": profile.model,
+            "serial": profile.serial,
+            "fingerprint": profile.fingerprint,
+            "samples": int(dive.t_s.size),
+            "samples_in_trajectory": int(np.count_nonzero(inside)),
+        },
+        "reference_time_s": reference_ns / NS_PER_S,
+        "reference_time_ns": reference_ns,
+        "time_offset_s": sync.time_offset_s,
+        "time_offset_sigma_s": _number(sync.time_offset_sigma_s),
+        "time_offset_given": options.time_offset_s is not None and options.method == "ours",
+        "drift_ppm": sync.drift_ppm,
+        "drift_sigma_ppm": _number(sync.drift_sigma_ppm),
+        "depth_offset_m": sync.depth_offset_m,
+        "depth_offset_sigma_m": _number(sync.depth_offset_sigma_m),
+        "depth_scale": sync.depth_scale,
+        "depth_scale_sigma": _number(sync.depth_scale_sigma),
+        "residual_rms_m": _number(sync.residual_rms_m),
+        "residual_median_abs_m": _number(float(np.median(np.abs(residual[inside]))))
+        if np.any(inside)
+        else None,
+        "samples_used": sync.used,
+        "inliers": sync.inliers,
+        "relation": "dive_time = camera_time + time_offset_s + drift_ppm * 1e-6 * "
+        "(camera_time - reference_time_s); depth_m = depth_offset_m - depth_scale * z",
+        "clock": {"source": "camera", "target": "dive computer", **asdict(clock)},
+        "coarse_candidates": [asdict(c) for c in candidates],
+        "options": asdict(options),
+        "outputs": {"world": WORLD_NAME},
+    }
+    if scale_free is not None:
+        document["depth_scale_free"] = {
+            "value": scale_free.depth_scale,
+            "sigma": _number(scale_free.depth_scale_sigma),
+        }
+    if fused is not None:
+        change = fused.positions[:, 2] - world.positions[:, 2]
+        document["outputs"]["fused"] = FUSED_NAME
+        document["fusion_z_change_rms_m"] = float(np.sqrt(np.mean(change * change)))
+        document["fusion_z_change_max_m"] = float(np.max(np.abs(change)))
+    if options.plot:
+        document["outputs"]["plot"] = PLOT_NAME
+    return document
