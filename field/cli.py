@@ -15,7 +15,9 @@ example:
 """
 
 # Command groups, in the order data flows through the field side.
-COMMAND_MODULES: tuple[str, ...] = ()
+COMMAND_MODULES: tuple[str, ...] = (
+    "field.commands.gopro",
+)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
