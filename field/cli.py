@@ -16,6 +16,7 @@ example:
 
 # Command groups, in the order data flows through the field side.
 COMMAND_MODULES: tuple[str, ...] = (
+    "field.commands.dc",
     "field.commands.gopro",
 )
 

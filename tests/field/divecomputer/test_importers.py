@@ -1,0 +1,314 @@
+"""Logbook importers against every real file in ../shared/data/divelogs, and refusals."""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from field.divecomputer.importers import (
+    IMPORTERS,
+    detect_format,
+    import_logbook,
+    read_logbook,
+)
+from shared.errors import InputError
+from shared.formats.diveprofile import read_dive_folder, read_dive_index
+
+REPO = Path(__file__).resolve().parents[3]
+NAN = math.nan
+
+# file, dive index: start, model, serial, samples, (t0 s, depth0, temp0), (t_end, depth, temp),
+# max depth (deepest sample), samples with a temperature, sample interval
+EXPECTED = {
+    ("test42.uddf", 0): (
+        "2014-04-02T10:00:00", "Subsurface Divelog", "", 2485,
+        (2.0, 2.34, NAN), (4970.0, 0.24, NAN), 38.97, 153, 2.0,
+    ),
+    ("ostc.xml", 0): (
+        "2017-02-03T06:58:00", "Heinrichs Weikamp OSTC Sport", "10321", 78,
+        (2.0, 2.465, NAN), (4616.0, 0.01, NAN), 26.097, 10, 60.0,
+    ),
+    ("ostc.xml", 1): (
+        "2017-02-03T10:24:00", "Heinrichs Weikamp OSTC Sport", "10321", 72,
+        (2.0, 2.505, NAN), (4246.0, 0.0, NAN), 26.998, 14, 60.0,
+    ),
+    ("shearwater-perdix2-dive68.uddf", 0): (
+        "2025-01-20T17:45:38", "Shearwater Perdix 2", "AF0B4DD1", 252,
+        (0.0, 1.00609756, 8.0), (2510.0, 0.0, 8.0), 12.5914631, 252, 10.0,
+    ),
+    ("shearwater-petrel3-dive88.csv", 0): (
+        "2025-10-31T11:51:49", "Shearwater Petrel 3", "B2F10222", 668,
+        (0.0, 1.3, 28.0), (6670.0, 0.0, 24.0), 53.6, 668, 10.0,
+    ),
+}  # fmt: skip
+
+
+def same(a: float, b: float) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or a == pytest.approx(b, abs=1e-9)
+
+
+@pytest.mark.parametrize(("name", "index"), sorted(EXPECTED))
+def test_real_logbooks(shared_data: Path, name: str, index: int) -> None:
+    start, model, serial, count, first, last, max_depth, with_temp, interval = EXPECTED[
+        (name, index)
+    ]
+    dive = read_logbook(shared_data / "divelogs" / name)[index]
+    assert (dive.start_iso, dive.model, dive.serial) == (start, model, serial)
+    assert dive.stamps_s.size == count and dive.sample_interval_s == interval
+    got_first = (dive.stamps_s[0] - dive.start_s, dive.depth_m[0], dive.temperature_c[0])
+    got_last = (dive.stamps_s[-1] - dive.start_s, dive.depth_m[-1], dive.temperature_c[-1])
+    assert all(same(g, w) for g, w in zip(got_first + got_last, first + last, strict=True))
+    assert dive.max_depth_m == pytest.approx(max_depth)
+    assert dive.duration_s == last[0]
+    assert int(np.isfinite(dive.temperature_c).sum()) == with_temp
+    assert np.all(np.diff(dive.stamps_s) > 0)
+
+
+def test_every_real_file_is_covered(shared_data: Path) -> None:
+    names = {p.name for p in (shared_data / "divelogs").iterdir()}
+    assert names == {name for name, _ in EXPECTED} | {"test-42-uddf-import-reference.xml"}
+
+
+def test_uddf_matches_subsurface_reading(shared_data: Path) -> None:
+    folder = shared_data / "divelogs"
+    (ours,) = read_logbook(folder / "test42.uddf")
+    (reference,) = read_logbook(folder / "test-42-uddf-import-reference.xml")
+    assert ours.start_iso == reference.start_iso and ours.model == reference.model
+    np.testing.assert_array_equal(ours.stamps_s, reference.stamps_s)
+    np.testing.assert_array_equal(ours.depth_m, reference.depth_m)
+    np.testing.assert_array_equal(ours.temperature_c, reference.temperature_c)  # NaN too
+    # Cross-check the reference's own summary: its duration is the UDDF <diveduration>.
+    text = (folder / "test-42-uddf-import-reference.xml").read_text()
+    assert (
+        "duration='77:54 min'" in text
+        and "<diveduration>4674</diveduration>" in (folder / "test42.uddf").read_text()
+    )
+
+
+def test_shearwater_fingerprint_is_the_start_time(shared_data: Path) -> None:
+    (dive,) = read_logbook(shared_data / "divelogs" / "shearwater-petrel3-dive88.csv")
+    assert int(dive.fingerprint, 16) == int(dive.start_s)
+
+
+def test_uddf_without_namespace(shared_data: Path, tmp_path: Path) -> None:
+    text = (shared_data / "divelogs" / "shearwater-perdix2-dive68.uddf").read_text()
+    bare = re.sub(r'\sxmlns(:\w+)?="[^"]*"', "", text).replace("xsi:", "")
+    path = tmp_path / "bare.uddf"
+    path.write_text(bare)
+    (with_ns,) = read_logbook(shared_data / "divelogs" / "shearwater-perdix2-dive68.uddf")
+    (without,) = read_logbook(path)
+    np.testing.assert_array_equal(with_ns.depth_m, without.depth_m)
+    assert without.serial == "AF0B4DD1"
+
+
+def imperial_copy(source: Path, target: Path, *, units_in_headers: bool) -> None:
+    lines = source.read_text().splitlines()
+    summary = lines[0].split(",")
+    values = lines[1].split(",")
+    values[summary.index("Imperial Units")] = "True" if not units_in_headers else "False"
+    header = lines[2].split(",")
+    depth, temp = header.index("Depth"), header.index("Water Temp")
+    if units_in_headers:
+        header[depth], header[temp] = "Depth (ft)", "Water Temp (F)"
+    out = [lines[0], ",".join(values), ",".join(header)]
+    for line in lines[3:]:
+        cells = line.split(",")
+        cells[depth] = repr(float(cells[depth]) / 0.3048)
+        cells[temp] = repr(float(cells[temp]) * 9 / 5 + 32)
+        out.append(",".join(cells))
+    target.write_text("\n".join(out) + "\n")
+
+
+@pytest.mark.parametrize("units_in_headers", [False, True])
+def test_shearwater_csv_imperial(shared_data: Path, tmp_path: Path, units_in_headers: bool) -> None:
+    source = shared_data / "divelogs" / "shearwater-petrel3-dive88.csv"
+    imperial = tmp_path / "imperial.csv"
+    imperial_copy(source, imperial, units_in_headers=units_in_headers)
+    (metric_dive,) = read_logbook(source)
+    (imperial_dive,) = read_logbook(imperial)
+    np.testing.assert_allclose(imperial_dive.depth_m, metric_dive.depth_m, atol=1e-9)
+    np.testing.assert_allclose(imperial_dive.temperature_c, metric_dive.temperature_c, atol=1e-9)
+
+
+SUBSURFACE_TRIP = """<divelog program='subsurface' version='3'>
+<dives>
+<trip date='2020-05-01' time='08:00:00'>
+<dive number='7' date='2020-05-01' time='09:00:00'>
+  <divecomputer model='A' deviceid='1' diveid='0000abcd'>
+  <sample time='0:10 min' depth='33.0 ft' temp='68.0 F' />
+  <sample time='1:10 min' depth='12.0 m' temp='290.15 K' />
+  </divecomputer>
+  <divecomputer model='B' date='2020-05-01' time='09:00:30'>
+  <sample time='1:00:00' depth='1.5 m' />
+  </divecomputer>
+</dive>
+</trip>
+</dives>
+</divelog>
+"""
+
+
+def test_subsurface_trips_and_every_divecomputer(tmp_path: Path) -> None:
+    path = tmp_path / "log.ssrf"
+    path.write_text(SUBSURFACE_TRIP)
+    first, second = read_logbook(path)
+    assert first.fingerprint == "0000ABCD" and first.model == "A"
+    assert first.depth_m[0] == pytest.approx(33.0 * 0.3048)
+    assert first.temperature_c.tolist() == [pytest.approx(20.0), 17.0]
+    assert second.model == "B" and second.start_iso == "2020-05-01T09:00:30"
+    assert second.stamps_s[0] - second.start_s == 3600.0
+    assert second.sample_interval_s is None
+    out = tmp_path / "dives"
+    assert len(import_logbook(path, out)) == 2
+    assert import_logbook(path, out) == []  # repeated import adds nothing
+    assert len(read_dive_index(out)) == 2
+
+
+BILLION_LAUGHS = """<?xml version="1.0"?>
+<!DOCTYPE lolz [
+ <!ENTITY lol "lol">
+ <!ENTITY lol1 "&lol;&lol;&lol;&lol;&lol;&lol;&lol;&lol;&lol;&lol;">
+ <!ENTITY lol2 "&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;">
+]>
+<uddf><generator><name>&lol2;</name></generator></uddf>
+"""
+EXTERNAL = """<?xml version="1.0"?>
+<!DOCTYPE divelog [<!ENTITY secret SYSTEM "file:///etc/passwd">]>
+<divelog><dives><dive date='2020-01-01'><notes>&secret;</notes></dive></dives></divelog>
+"""
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "match"),
+    [
+        ("lol.uddf", BILLION_LAUGHS, "refused unsafe XML"),
+        ("ext.xml", EXTERNAL, "refused unsafe XML"),
+        ("broken.uddf", "<uddf><dive>", r"broken.uddf:1:\d+: malformed XML"),
+        ("other.xml", "<gpx></gpx>", "neither Subsurface"),
+        ("notes.txt", "hello", "unknown logbook type .txt"),
+        ("empty.uddf", "<uddf></uddf>", "no <dive>"),
+        ("empty.ssrf", "<divelog></divelog>", "no <dive>"),
+        ("wrongroot.ssrf", "<uddf></uddf>", "expected Subsurface's <divelog>"),
+        ("wrongroot.uddf", "<divelog/>", r"expected <uddf>"),
+        ("nodate.uddf", "<uddf><dive><samples/></dive></uddf>", "no informationbeforedive"),
+        (
+            "baddepth.ssrf",
+            "<divelog><dive date='2020-01-01'><sample time='0:10 min' depth='deep' /></dive>"
+            "</divelog>",
+            "'deep' is not a number",
+        ),
+        (
+            "badunit.ssrf",
+            "<divelog><dive date='2020-01-01'><sample time='0:10 min' depth='3 yd' /></dive>"
+            "</divelog>",
+            "depth unit 'yd'",
+        ),
+        (
+            "badtemp.ssrf",
+            "<divelog><dive date='2020-01-01'><sample time='1:00 min' depth='3 m' temp='3 X'/>"
+            "</dive></divelog>",
+            "temperature unit 'x'",
+        ),
+        (
+            "notime.ssrf",
+            "<divelog><dive date='2020-01-01'><sample depth='3 m' /></dive></divelog>",
+            "sample without a time",
+        ),
+        (
+            "badtime.ssrf",
+            "<divelog><dive date='2020-01-01'><sample time='x:y min' depth='3 m'/></dive>"
+            "</divelog>",
+            "not mm:ss",
+        ),
+        ("nodate.ssrf", "<divelog><dive><sample time='1:00 min'/></dive></divelog>", "no date"),
+        (
+            "baddate.ssrf",
+            "<divelog><dive date='May 1'><sample time='1:00 min'/></dive></divelog>",
+            "is not ISO 8601",
+        ),
+        (
+            "nowaypointtime.uddf",
+            "<uddf><dive><informationbeforedive><datetime>2020-01-01T10:00:00</datetime>"
+            "</informationbeforedive><samples><waypoint><depth>3</depth></waypoint></samples>"
+            "</dive></uddf>",
+            "no divetime",
+        ),
+        (
+            "badnumber.uddf",
+            "<uddf><dive><informationbeforedive><datetime>2020-01-01</datetime>"
+            "</informationbeforedive><samples><waypoint><divetime>1</divetime><depth>x</depth>"
+            "</waypoint></samples></dive></uddf>",
+            "'x' is not a number",
+        ),
+        ("plain.csv", "a,b\n1,2\n3,4\n", "not a Shearwater Cloud CSV"),
+    ],
+)
+def test_refusals(tmp_path: Path, name: str, content: str, match: str) -> None:
+    path = tmp_path / name
+    path.write_text(content)
+    with pytest.raises(InputError, match=match):
+        read_logbook(path)
+
+
+def test_csv_refusals(shared_data: Path, tmp_path: Path) -> None:
+    lines = (shared_data / "divelogs" / "shearwater-petrel3-dive88.csv").read_text().splitlines()
+    bad_date = tmp_path / "date.csv"
+    bad_date.write_text(
+        "\n".join([lines[0], lines[1].replace("10/31/2025", "31.10.2025"), *lines[2:]])
+    )
+    with pytest.raises(InputError, match=r"start date '31\.10\.2025"):
+        read_logbook(bad_date)
+    bad_cell = tmp_path / "cell.csv"
+    bad_cell.write_text("\n".join([*lines[:3], "10,deep" + lines[3][len("0,1.3") :]]))
+    with pytest.raises(InputError, match=r"cell.csv:4: 'deep' is not a number"):
+        read_logbook(bad_cell)
+    no_time = tmp_path / "notime.csv"
+    no_time.write_text("\n".join([*lines[:3], "N/A" + lines[3][1:]]))
+    with pytest.raises(InputError, match=r"notime\.csv:4: sample without a time"):
+        read_logbook(no_time)
+    no_depth = tmp_path / "nodepth.csv"
+    no_depth.write_text("\n".join([*lines[:2], "Time (sec),Temp", "0,1"]))
+    with pytest.raises(InputError, match=r"nodepth.csv:3: sample header"):
+        read_logbook(no_depth)
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(b"\xff\xfe\xfa")
+    with pytest.raises(InputError, match="not UTF-8"):
+        read_logbook(binary)
+
+
+def test_registry_and_detection(tmp_path: Path) -> None:
+    assert set(IMPORTERS) == {"subsurface", "uddf", "shearwater-csv"}
+    assert detect_format(Path("x.UDDF")) == "uddf"
+    assert detect_format(Path("x.ssrf")) == "subsurface"
+    with pytest.raises(InputError, match="no such logbook"):
+        read_logbook(tmp_path / "missing.xml")
+    path = tmp_path / "a.xml"
+    path.write_text(SUBSURFACE_TRIP)
+    with pytest.raises(InputError, match="--format 'gpx'"):
+        read_logbook(path, format_name="gpx")
+    with pytest.raises(InputError, match="cannot read"):
+        detect_format(tmp_path / "missing.xml")
+
+
+def test_cli_import(shared_data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "dives"
+    for name in ("ostc.xml", "test42.uddf", "shearwater-petrel3-dive88.csv"):
+        command = [
+            sys.executable, "-m", "field.cli", "dc", "import",
+            str(shared_data / "divelogs" / name), "--out", str(out),
+        ]  # fmt: skip
+        done = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+    dives = read_dive_folder(out)
+    assert [d.stamps_s.size for d in dives] == [2485, 78, 72, 668]  # sorted by start
+    bad = subprocess.run(
+        [sys.executable, "-m", "field.cli", "dc", "import", str(tmp_path / "x.txt"), "--out", "o"],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert bad.returncode == 1 and "no such logbook file" in bad.stderr
