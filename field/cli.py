@@ -18,6 +18,7 @@ example:
 COMMAND_MODULES: tuple[str, ...] = (
     "field.commands.dc",
     "field.commands.gopro",
+    "field.commands.export",
 )
 
 

@@ -30,6 +30,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     telemetry.add_argument("--csv", type=Path, metavar="OUT", help="write the stream to this CSV")
     telemetry.add_argument("--overwrite", action="store_true", help="replace an existing CSV")
     telemetry.set_defaults(handler=_telemetry)
+    from field.commands.gopro_import import register_import
+
+    register_import(commands)
 
 
 def _telemetry(args: argparse.Namespace) -> int:
