@@ -58,7 +58,11 @@ class _Channel:
     count: int = 0
 
 
-def _compressor(compression: str) -> tuple[str, Callable[[bytes], bytes]]:
+def _keep(data: bytearray) -> bytearray:
+    return data
+
+
+def _compressor(compression: str) -> tuple[str, Callable[[bytearray], bytes | bytearray]]:
     if compression == "zstd":
         import zstandard
 
@@ -68,10 +72,10 @@ def _compressor(compression: str) -> tuple[str, Callable[[bytes], bytes]]:
             import lz4.frame  # type: ignore[import-untyped, import-not-found, unused-ignore]
         except ImportError:
             raise InputError("compression 'lz4': the lz4 package is not installed") from None
-        compress: Callable[[bytes], bytes] = lz4.frame.compress
+        compress: Callable[[bytearray], bytes] = lz4.frame.compress
         return "lz4", compress
     if compression == "none":
-        return "", bytes
+        return "", _keep
     raise InputError(f"compression {compression!r}: expected 'zstd', 'lz4' or 'none'")
 
 
@@ -268,7 +272,7 @@ class ArchiveWriter:
         if self._closed:
             raise WreckmapError(f"{self.path}: archive already closed")
 
-    def _emit(self, data: bytes) -> None:
+    def _emit(self, data: bytes | bytearray) -> None:
         self._file.write(data)
         self._pos += len(data)
 
@@ -323,7 +327,8 @@ class ArchiveWriter:
     def _finish_chunk(self) -> None:
         if self._chunk_messages == 0:
             return
-        raw = bytes(self._chunk)
+        # The buffer is handed over (a new one starts below): no copy of the chunk.
+        raw = self._chunk
         compressed = self._compress(raw)
         chunk_offset = self._pos
         head = rec.CHUNK_FIXED.pack(
