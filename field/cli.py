@@ -16,8 +16,9 @@ example:
 
 # Command groups, in the order data flows through the field side.
 COMMAND_MODULES: tuple[str, ...] = (
-    "field.commands.dc",
+    "field.commands.sim",
     "field.commands.gopro",
+    "field.commands.dc",
     "field.commands.export",
 )
 
