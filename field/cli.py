@@ -18,6 +18,7 @@ example:
 COMMAND_MODULES: tuple[str, ...] = (
     "field.commands.sim",
     "field.commands.gopro",
+    "field.commands.record",
     "field.commands.dc",
     "field.commands.export",
 )
