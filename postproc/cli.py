@@ -15,7 +15,11 @@ example:
 """
 
 # Command groups, in the order data flows through the stages.
-COMMAND_MODULES: tuple[str, ...] = ("postproc.commands.depth",)
+COMMAND_MODULES: tuple[str, ...] = (
+    "postproc.commands.calibrate",
+    "postproc.commands.depth",
+    "postproc.commands.merge",
+)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,738 @@
+"""The merge stage: put several SLAM sessions into one frame through AprilGrid targets.
+
+Inputs: SLAM result folders (`keyframes.tum` with camera poses `T_S_C`,
+`keyframes/<timestamp_ns>.png`, `calib/camchain.yaml`; cam0 took the
+keyframes) and Kalibr AprilGrid target YAMLs (with `tagIdOffset` when two
+grids share a wreck). Each target's name is its YAML file's stem.
+
+Per keyframe: detect the tags, assign them to targets, PnP over all the
+corners of each target at once (through the camera model), and
+`T_S_m = T_S_C @ T_C_m`. Per session and target: a robust mean with its
+covariance (`averaging.robust_pose_mean`). Then sessions are placed in the
+reference session's frame (`align.place_sessions`): 4 DoF (yaw and
+translation) when the sessions are depth-fused (gravity-aligned with
+absolute z), otherwise 6 DoF. `method="paper"` runs the paper's recipe
+instead (`paper.py`): per-tag poses, one-sigma rejection, Euler averaging,
+sessions placed only through targets shared with the reference.
+
+Depth-fused sessions: when a folder's depth stage output is found beside it
+(`<slam>/depth/` or `<slam>/../depth/` holding `trajectory_world_fused.tum`
+or `trajectory_world.tum`, the world trajectory of `<slam>/trajectory.tum`),
+keyframe poses are moved into that world frame first:
+`T_W_C(t) = T_W_B(t) @ inv(T_S_B(t)) @ T_S_C(t)`.
+
+Outputs in `out_dir`:
+
+* `transforms.json`: {"reference", "method", "dof", "depth_fused",
+  "covariance_convention", "sessions": {folder name: {"placed", "T_W_S"
+  (4x4 row-major nested lists), "covariance" (6x6, rotation first, rad and
+  m), "targets", "via", "residuals", "diagnostic_6dof"...}}}. Sessions
+  sharing no target have "placed": false (left for natural-feature merging
+  in the SfM stage). Written last: its presence means the stage is done.
+* `targets.json`: per target its world pose `T_W_m`, covariance, and per
+  session the observations used and rejected.
+* `<session>/keyframes_merged.tum`: the keyframe camera poses in W.
+* `merge_top.png`, `merge_side.png`: all sessions and targets seen from above
+  and from the side.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from postproc.merge.align import (
+    Placement,
+    TargetEstimate,
+    compose_with_covariance,
+    place_sessions,
+    rotation_difference_rad,
+)
+from postproc.merge.averaging import (
+    PoseAverage,
+    clustered_covariance,
+    fuse_pose_estimates,
+    robust_pose_mean,
+)
+from postproc.merge.detect import DetectionOptions
+from shared.errors import InputError, StageError
+from shared.fsutil import write_text_atomic
+from shared.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+
+TRANSFORMS_NAME = "transforms.json"
+TARGETS_NAME = "targets.json"
+MERGED_KEYFRAMES_NAME = "keyframes_merged.tum"
+TOP_PLOT_NAME = "merge_top.png"
+SIDE_PLOT_NAME = "merge_side.png"
+DEPTH_WORLD_NAMES = ("trajectory_world_fused.tum", "trajectory_world.tum")
+COVARIANCE_CONVENTION = (
+    "6x6 of [dtheta, dt]: R = Exp(dtheta) R_mean, t = t_mean + dt, both in the parent "
+    "frame (W); rotation first; radians and metres"
+)
+
+
+@dataclass(kw_only=True)
+class MergeOptions:
+    """Options of the merge stage.
+
+    method: "ours" (whole-grid PnP, robust SE(3) averaging, covariance-weighted
+        alignment) or "paper" (per-tag poses, one-sigma rejection, Euler means).
+    reference: folder name of the session that defines W; None = the first.
+    dof: "auto" (4 when the sessions are depth-fused, else 6), 4 or 6.
+    depth_fused: True: use the depth stage's world trajectories (error if
+        missing); False: ignore them; None: use them when every session has one.
+    min_tags: fewest tags of one target in a keyframe to use the observation.
+    max_reprojection_rms_px: observations whose PnP fits worse are dropped (pixels).
+    max_distance_m: observations of a target further than this are dropped (metres).
+    rotation_mean: "chordal" or "quaternion" (ours).
+    outlier_rule: "mad" or "chi2" (ours; see `averaging.robust_pose_mean`).
+    mad_threshold: robust sigmas beyond which an observation is an outlier.
+    pass_gap_s: keyframes of one target further apart in time than this (s) belong
+        to different passes; a pass shares its SLAM drift, so the covariance of a
+        target's mean counts passes, not keyframes (`averaging.clustered_covariance`).
+    drift_rotation_sigma_deg / drift_translation_sigma_m: the SLAM drift of one
+        pass assumed before the data are seen (1 sigma, degrees and metres).
+    camera: the camchain entry that took the keyframes.
+    plot: write the top and side views.
+    detection: tag detection settings.
+    """
+
+    method: Literal["ours", "paper"] = "ours"
+    reference: str | None = None
+    dof: Literal["auto", 4, 6] = "auto"
+    depth_fused: bool | None = None
+    min_tags: int = 2
+    max_reprojection_rms_px: float = 2.0
+    max_distance_m: float = 15.0
+    rotation_mean: Literal["chordal", "quaternion"] = "chordal"
+    outlier_rule: Literal["mad", "chi2"] = "mad"
+    mad_threshold: float = 3.5
+    pass_gap_s: float = 5.0
+    drift_rotation_sigma_deg: float = 0.2
+    drift_translation_sigma_m: float = 0.02
+    camera: str = "cam0"
+    plot: bool = True
+    detection: DetectionOptions = field(default_factory=DetectionOptions)
+
+
+@dataclass
+class Session:
+    """One input folder: its name, camera, keyframe poses and images."""
+
+    name: str
+    folder: Path
+    camera: Any
+    keyframes: Trajectory
+    images: dict[int, Path]
+    depth_fused: bool = False
+    keyframes_slam: Trajectory | None = None
+
+
+@dataclass
+class Observation:
+    """One target seen in one keyframe (session frame `T_S_m`)."""
+
+    session: str
+    stamp_ns: int
+    target: str
+    tag_count: int
+    corner_count: int
+    reprojection_rms_px: float
+    session_from_target: FloatArray
+    paper_session_from_target: FloatArray | None = None
+
+
+def run(
+    options: MergeOptions,
+    slam_dirs: Sequence[Path | str],
+    targets: Sequence[Path | str],
+    out_dir: Path | str,
+    *,
+    overwrite: bool = False,
+) -> Path:
+    """Merge the sessions in `slam_dirs` through the targets; returns transforms.json.
+
+    Skips the work when `out_dir/transforms.json` exists and `overwrite` is false.
+    Raises InputError for unreadable folders or target files, StageError for
+    invalid options (unknown reference, method or dof, no input).
+    """
+    from shared.calibration.kalibr import read_target_yaml
+
+    out = Path(out_dir)
+    transforms_path = out / TRANSFORMS_NAME
+    if transforms_path.exists() and not overwrite:
+        log.info("%s exists: merge already done (overwrite to redo)", transforms_path)
+        return transforms_path
+    _check_options(options, slam_dirs, targets)
+    target_names = [Path(t).stem for t in targets]
+    if len(set(target_names)) != len(target_names):
+        raise InputError(
+            f"target files {[str(t) for t in targets]}: two share a name (the file stem names "
+            "the target; rename one)"
+        )
+    grids = [read_target_yaml(t) for t in targets]
+    _check_disjoint_ids(grids, targets)
+    sessions = _load_sessions(options, [Path(d) for d in slam_dirs])
+    reference = options.reference or sessions[0].name
+    if reference not in {s.name for s in sessions}:
+        raise StageError(
+            f"merge: reference {reference!r} is not one of the inputs "
+            f"({', '.join(s.name for s in sessions)})"
+        )
+    depth_fused = all(s.depth_fused for s in sessions)
+    dof: Literal[4, 6] = (4 if depth_fused else 6) if options.dof == "auto" else options.dof
+    observations = _observe(options, sessions, grids, target_names)
+
+    if options.method == "ours":
+        averages = _average_ours(options, sessions, target_names, observations)
+    else:
+        averages = _average_paper(sessions, target_names, observations)
+    estimates = {
+        s.name: {m: TargetEstimate(a.pose, a.covariance) for m, a in averages[s.name].items()}
+        for s in sessions
+    }
+    if options.method == "ours":
+        placements = place_sessions(estimates, reference, dof=dof)
+    else:
+        placements = _place_paper(estimates, reference)
+    for session in sessions:
+        if session.name not in placements:
+            log.warning(
+                "%s shares no target with the placed sessions: not placed (left for "
+                "natural-feature merging in the SfM stage)",
+                session.name,
+            )
+
+    out.mkdir(parents=True, exist_ok=True)
+    for session in sessions:
+        placement = placements.get(session.name)
+        if placement is None:
+            continue
+        from shared.formats.tum import write_tum
+
+        merged = session.keyframes.transformed(placement.world_from_session)
+        write_tum(out / session.name / MERGED_KEYFRAMES_NAME, merged, overwrite=overwrite)
+    world_targets = _world_targets(estimates, placements)
+    targets_doc = _targets_document(
+        target_names, targets, sessions, averages, observations, world_targets
+    )
+    write_text_atomic(
+        out / TARGETS_NAME, json.dumps(targets_doc, indent=2) + "\n", overwrite=overwrite
+    )
+    if options.plot:
+        from postproc.merge.plots import plot_merge
+
+        plot_merge(
+            out / TOP_PLOT_NAME,
+            out / SIDE_PLOT_NAME,
+            trajectories={
+                s.name: s.keyframes.transformed(placements[s.name].world_from_session).positions
+                for s in sessions
+                if s.name in placements
+            },
+            targets={name: pose for name, (pose, _) in world_targets.items()},
+            extents={name: grid.extent_m for name, grid in zip(target_names, grids, strict=True)},
+            overwrite=overwrite,
+        )
+    document = _transforms_document(
+        options, sessions, reference, dof, depth_fused, placements, estimates
+    )
+    write_text_atomic(transforms_path, json.dumps(document, indent=2) + "\n", overwrite=overwrite)
+    return transforms_path
+
+
+def _check_options(
+    options: MergeOptions, slam_dirs: Sequence[Path | str], targets: Sequence[Path | str]
+) -> None:
+    if options.method not in ("ours", "paper"):
+        raise StageError(f"merge: unknown method {options.method!r} (expected 'ours' or 'paper')")
+    if options.dof not in ("auto", 4, 6):
+        raise StageError(f"merge: dof must be 'auto', 4 or 6, got {options.dof!r}")
+    if options.rotation_mean not in ("chordal", "quaternion"):
+        raise StageError(f"merge: unknown rotation_mean {options.rotation_mean!r}")
+    if options.outlier_rule not in ("mad", "chi2"):
+        raise StageError(f"merge: unknown outlier_rule {options.outlier_rule!r}")
+    if options.min_tags < 1:
+        raise StageError(f"merge: min_tags must be at least 1, got {options.min_tags}")
+    for name in (
+        "max_reprojection_rms_px",
+        "max_distance_m",
+        "mad_threshold",
+        "pass_gap_s",
+        "drift_rotation_sigma_deg",
+        "drift_translation_sigma_m",
+    ):
+        value = getattr(options, name)
+        if not (value > 0 and np.isfinite(value)):
+            raise StageError(f"merge: {name} must be a positive number, got {value}")
+    if not slam_dirs:
+        raise StageError("merge: no SLAM folder given")
+    if not targets:
+        raise StageError("merge: no target YAML given (expected at least one --targets file)")
+
+
+def _check_disjoint_ids(grids: Sequence[Any], paths: Sequence[Path | str]) -> None:
+    owner: dict[int, int] = {}
+    for index, grid in enumerate(grids):
+        for tag_id in grid.tag_ids():
+            if tag_id in owner:
+                raise InputError(
+                    f"{paths[index]}: tag id {tag_id} also belongs to {paths[owner[tag_id]]} "
+                    "(give each grid its own tagIdOffset)"
+                )
+            owner[tag_id] = index
+
+
+def session_names(folders: Sequence[Path]) -> list[str]:
+    """Folder names, made unique by prefixing parent folders where two collide.
+
+    `results/dive1/slam` and `results/dive2/slam` become `dive1_slam` and
+    `dive2_slam`. Raises InputError for the same folder given twice.
+    """
+    resolved = [f.resolve() for f in folders]
+    if len(set(resolved)) != len(resolved):
+        raise InputError(f"the same SLAM folder is given twice: {[str(f) for f in folders]}")
+    depth = 1
+    while True:
+        names = ["_".join(p.parts[-depth:]) for p in resolved]
+        if len(set(names)) == len(names) or depth >= max(len(p.parts) for p in resolved):
+            return names
+        depth += 1
+
+
+def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Session]:
+    from shared.calibration.kalibr import read_camchain
+    from shared.formats.tum import read_tum
+
+    names = session_names(folders)
+    sessions = []
+    for name, folder in zip(names, folders, strict=True):
+        if not folder.is_dir():
+            raise InputError(f"{folder}: not a folder (expected a SLAM result folder)")
+        keyframes_path = folder / "keyframes.tum"
+        camchain_path = folder / "calib" / "camchain.yaml"
+        for path, what in ((keyframes_path, "keyframe poses"), (camchain_path, "camera model")):
+            if not path.is_file():
+                raise InputError(f"{folder}: no {path.relative_to(folder)} ({what} expected)")
+        keyframes = read_tum(keyframes_path)
+        cameras = {c.name: c for c in read_camchain(camchain_path)}
+        if options.camera not in cameras:
+            raise InputError(
+                f"{camchain_path}: no camera {options.camera!r} (found: {', '.join(cameras)})"
+            )
+        images = {}
+        image_dir = folder / "keyframes"
+        for stamp in keyframes.stamps_ns.tolist():
+            path = image_dir / f"{stamp}.png"
+            if path.is_file():
+                images[int(stamp)] = path
+        if not images:
+            raise InputError(
+                f"{image_dir}: no keyframe images (expected <timestamp_ns>.png for the "
+                f"stamps of {keyframes_path.name})"
+            )
+        if len(images) < len(keyframes):
+            log.warning(
+                "%s: %d of %d keyframes have no image",
+                folder,
+                len(keyframes) - len(images),
+                len(keyframes),
+            )
+        session = Session(name, folder, cameras[options.camera].camera, keyframes, images)
+        _apply_depth(options, session)
+        sessions.append(session)
+    fused = [s.depth_fused for s in sessions]
+    if options.depth_fused is None and any(fused) and not all(fused):
+        log.warning(
+            "only some sessions are depth-fused (%s): using the SLAM frames for all",
+            ", ".join(s.name for s in sessions if s.depth_fused),
+        )
+        for session in sessions:
+            _undo_depth(session)
+    return sessions
+
+
+def find_depth_world(folder: Path) -> Path | None:
+    """The depth stage's world trajectory for the SLAM folder `folder`, if any."""
+    for depth_dir in (folder / "depth", folder.parent / "depth"):
+        for name in DEPTH_WORLD_NAMES:
+            if (depth_dir / name).is_file():
+                return depth_dir / name
+    return None
+
+
+def _apply_depth(options: MergeOptions, session: Session) -> None:
+    from shared.formats.tum import read_tum
+
+    if options.depth_fused is False:
+        return
+    world_path = find_depth_world(session.folder)
+    body_path = session.folder / "trajectory.tum"
+    if world_path is None or not body_path.is_file():
+        if options.depth_fused:
+            raise InputError(
+                f"{session.folder}: depth fusion requested but no depth world trajectory "
+                f"({' or '.join(DEPTH_WORLD_NAMES)} in depth/ or ../depth/) and trajectory.tum"
+            )
+        return
+    world = read_tum(world_path)
+    body = read_tum(body_path)
+    stamps = session.keyframes.stamps_ns
+    start = max(int(world.stamps_ns[0]), int(body.stamps_ns[0]))
+    end = min(int(world.stamps_ns[-1]), int(body.stamps_ns[-1]))
+    inside = (stamps >= start) & (stamps <= end)
+    if not np.any(inside):
+        raise InputError(
+            f"{world_path}: no overlap with the keyframe stamps of {session.folder}/keyframes.tum"
+        )
+    kept = stamps[inside]
+    world_from_session = world.interpolate(kept).poses @ np.linalg.inv(body.interpolate(kept).poses)
+    session.keyframes_slam = session.keyframes
+    session.keyframes = Trajectory(kept, world_from_session @ session.keyframes.poses[inside])
+    session.depth_fused = True
+    log.info("%s: keyframes moved into the depth-fused world frame (%s)", session.name, world_path)
+
+
+def _undo_depth(session: Session) -> None:
+    if session.depth_fused and session.keyframes_slam is not None:
+        session.keyframes = session.keyframes_slam
+        session.depth_fused = False
+
+
+def _observe(
+    options: MergeOptions,
+    sessions: Sequence[Session],
+    grids: Sequence[Any],
+    target_names: Sequence[str],
+) -> list[Observation]:
+    """Detect, assign and PnP every keyframe of every session (with a progress bar)."""
+    import cv2
+
+    from postproc.merge.detect import detect_tags, group_by_target
+    from postproc.merge.paper import per_tag_target_pose
+    from postproc.merge.target_pose import estimate_target_pose
+    from shared.progress import progress_bar
+
+    total = sum(len(s.images) for s in sessions)
+    observations: list[Observation] = []
+    foreign: dict[int, int] = {}
+    bar = progress_bar(total=total, desc="merge: keyframes", unit="kf")
+    try:
+        for session in sessions:
+            index_of = {int(s): i for i, s in enumerate(session.keyframes.stamps_ns.tolist())}
+            for stamp, path in sorted(session.images.items()):
+                bar.update(1)
+                if stamp not in index_of:
+                    continue
+                image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+                if image is None:
+                    raise InputError(f"{path}: cannot read the keyframe image")
+                detections = detect_tags(image, options.detection)
+                grid_observations, others = group_by_target(
+                    detections, grids, min_tags=options.min_tags
+                )
+                for tag_id in others:
+                    foreign[tag_id] = foreign.get(tag_id, 0) + 1
+                session_from_cam = session.keyframes.poses[index_of[stamp]]
+                for grid_observation in grid_observations:
+                    estimate = estimate_target_pose(
+                        session.camera,
+                        grid_observation.object_points_m.reshape(-1, 3),
+                        grid_observation.image_points_px.reshape(-1, 2),
+                    )
+                    if estimate is None:
+                        continue
+                    if estimate.reprojection_rms_px > options.max_reprojection_rms_px:
+                        continue
+                    if np.linalg.norm(estimate.cam_from_target[:3, 3]) > options.max_distance_m:
+                        continue
+                    paper_pose = None
+                    if options.method == "paper":
+                        cam_from_target = per_tag_target_pose(session.camera, grid_observation)
+                        if cam_from_target is None:
+                            continue
+                        paper_pose = session_from_cam @ cam_from_target
+                    observations.append(
+                        Observation(
+                            session=session.name,
+                            stamp_ns=stamp,
+                            target=target_names[grid_observation.target_index],
+                            tag_count=len(grid_observation.tag_ids),
+                            corner_count=estimate.corner_count,
+                            reprojection_rms_px=estimate.reprojection_rms_px,
+                            session_from_target=session_from_cam @ estimate.cam_from_target,
+                            paper_session_from_target=paper_pose,
+                        )
+                    )
+    finally:
+        bar.close()
+    if foreign:
+        log.info(
+            "rejected tags of no target: %s",
+            ", ".join(f"id {k} ({v}x)" for k, v in sorted(foreign.items())),
+        )
+    for session in sessions:
+        for name in target_names:
+            count = sum(1 for o in observations if o.session == session.name and o.target == name)
+            log.info("%s: target %s seen in %d keyframes", session.name, name, count)
+    return observations
+
+
+def _average_ours(
+    options: MergeOptions,
+    sessions: Sequence[Session],
+    target_names: Sequence[str],
+    observations: Sequence[Observation],
+) -> dict[str, dict[str, PoseAverage]]:
+    averages: dict[str, dict[str, PoseAverage]] = {}
+    for session in sessions:
+        averages[session.name] = {}
+        for name in target_names:
+            chosen = [o for o in observations if o.session == session.name and o.target == name]
+            if not chosen:
+                continue
+            weights = np.array([o.corner_count for o in chosen], dtype=np.float64)
+            average = robust_pose_mean(
+                np.array([o.session_from_target for o in chosen]),
+                weights=weights,
+                rotation_mean=options.rotation_mean,
+                outlier_rule=options.outlier_rule,
+                mad_threshold=options.mad_threshold,
+            )
+            passes = pass_labels([o.stamp_ns for o in chosen], gap_s=options.pass_gap_s)
+            covariance = clustered_covariance(
+                average,
+                passes,
+                weights=weights,
+                prior_rotation_sigma_rad=np.deg2rad(options.drift_rotation_sigma_deg),
+                prior_translation_sigma_m=options.drift_translation_sigma_m,
+            )
+            averages[session.name][name] = dataclasses.replace(average, covariance=covariance)
+    return averages
+
+
+def pass_labels(stamps_ns: Sequence[int], *, gap_s: float) -> npt.NDArray[np.int64]:
+    """Label (N,) each stamp (int64 ns, any order) with its pass: a new pass after a gap."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    order = np.argsort(stamps)
+    gaps = np.diff(stamps[order]) > int(gap_s * 1e9)
+    labels = np.empty(len(stamps), dtype=np.int64)
+    labels[order] = np.concatenate(([0], np.cumsum(gaps))) if len(stamps) else []
+    return labels
+
+
+def _average_paper(
+    sessions: Sequence[Session],
+    target_names: Sequence[str],
+    observations: Sequence[Observation],
+) -> dict[str, dict[str, PoseAverage]]:
+    from postproc.merge.averaging import pose_residuals
+    from postproc.merge.paper import one_sigma_average
+
+    averages: dict[str, dict[str, PoseAverage]] = {}
+    for session in sessions:
+        averages[session.name] = {}
+        for name in target_names:
+            chosen = [
+                o.paper_session_from_target
+                for o in observations
+                if o.session == session.name
+                and o.target == name
+                and o.paper_session_from_target is not None
+            ]
+            if not chosen:
+                continue
+            poses = np.array(chosen)
+            result = one_sigma_average(poses)
+            residuals = pose_residuals(poses, result.pose)
+            spread = robust_pose_mean(poses[result.inliers], mad_threshold=1e9).spread_covariance
+            n = max(int(np.count_nonzero(result.inliers)), 1)
+            averages[session.name][name] = PoseAverage(
+                pose=result.pose,
+                covariance=spread / n,
+                spread_covariance=spread,
+                inliers=result.inliers,
+                residuals=residuals,
+            )
+    return averages
+
+
+def _place_paper(
+    estimates: dict[str, dict[str, TargetEstimate]], reference: str
+) -> dict[str, Placement]:
+    """The paper's step 3: sessions sharing targets with the reference, Euler-averaged."""
+    from postproc.merge.align import TargetPair
+    from postproc.merge.paper import combine_candidates
+
+    placements = {reference: Placement(world_from_session=np.eye(4), covariance=np.zeros((6, 6)))}
+    for session, targets in estimates.items():
+        if session == reference:
+            continue
+        shared = [m for m in sorted(targets) if m in estimates[reference]]
+        if not shared:
+            continue
+        pairs = [
+            TargetPair(
+                m,
+                estimates[reference][m].pose,
+                estimates[reference][m].covariance,
+                targets[m].pose,
+                targets[m].covariance,
+            )
+            for m in shared
+        ]
+        candidates = [p.candidate() for p in pairs]
+        pose = combine_candidates(np.array([c[0] for c in candidates]))
+        covariance = np.mean([c[1] for c in candidates], axis=0) / len(candidates)
+        placements[session] = Placement(
+            world_from_session=pose, covariance=covariance, via=(reference,)
+        )
+    return placements
+
+
+def _world_targets(
+    estimates: dict[str, dict[str, TargetEstimate]], placements: dict[str, Placement]
+) -> dict[str, tuple[FloatArray, FloatArray]]:
+    """Each target's pose in W: the fusion over the placed sessions that saw it."""
+    per_target: dict[str, list[tuple[FloatArray, FloatArray]]] = {}
+    for session, targets in estimates.items():
+        placement = placements.get(session)
+        if placement is None:
+            continue
+        for name, estimate in targets.items():
+            per_target.setdefault(name, []).append(
+                compose_with_covariance(
+                    placement.world_from_session,
+                    placement.covariance,
+                    estimate.pose,
+                    estimate.covariance,
+                )
+            )
+    result = {}
+    for name, values in per_target.items():
+        if len(values) == 1:
+            result[name] = values[0]
+        else:
+            result[name] = fuse_pose_estimates(
+                np.array([v[0] for v in values]), np.array([v[1] for v in values])
+            )
+    return result
+
+
+def _matrix(a: FloatArray) -> list[list[float]]:
+    return [[float(x) for x in row] for row in np.asarray(a)]
+
+
+def _transforms_document(
+    options: MergeOptions,
+    sessions: Sequence[Session],
+    reference: str,
+    dof: int,
+    depth_fused: bool,
+    placements: dict[str, Placement],
+    estimates: dict[str, dict[str, TargetEstimate]],
+) -> dict[str, Any]:
+    entries: dict[str, Any] = {}
+    for session in sessions:
+        placement = placements.get(session.name)
+        entry: dict[str, Any] = {
+            "folder": str(session.folder),
+            "targets_seen": sorted(estimates[session.name]),
+            "depth_fused": session.depth_fused,
+        }
+        if placement is None:
+            entry["placed"] = False
+            entry["reason"] = (
+                "shares no target with the placed sessions; left for natural-feature "
+                "merging in the SfM stage"
+            )
+        else:
+            entry["placed"] = True
+            entry["T_W_S"] = _matrix(placement.world_from_session)
+            entry["covariance"] = _matrix(placement.covariance)
+            entry["sigma_rotation_deg"] = float(
+                np.rad2deg(np.sqrt(np.trace(placement.covariance[:3, :3])))
+            )
+            entry["sigma_translation_m"] = float(np.sqrt(np.trace(placement.covariance[3:, 3:])))
+            entry["via"] = list(placement.via)
+            if placement.alignment is not None:
+                entry["targets_used"] = list(placement.alignment.target_names)
+                entry["dof"] = placement.alignment.dof
+                entry["residuals"] = {
+                    name: {"rotation_deg": float(np.rad2deg(r)), "translation_m": t}
+                    for name, (r, t) in zip(
+                        placement.alignment.target_names,
+                        placement.alignment.residuals_rad_m,
+                        strict=True,
+                    )
+                }
+            if placement.diagnostic_6dof is not None:
+                six = placement.diagnostic_6dof.a_from_b
+                entry["diagnostic_6dof"] = {
+                    "T_W_S": _matrix(six),
+                    "covariance": _matrix(placement.diagnostic_6dof.covariance),
+                    "rotation_difference_deg": float(
+                        np.rad2deg(rotation_difference_rad(six, placement.world_from_session))
+                    ),
+                    "translation_difference_m": float(
+                        np.linalg.norm(six[:3, 3] - placement.world_from_session[:3, 3])
+                    ),
+                }
+        entries[session.name] = entry
+    return {
+        "reference": reference,
+        "method": options.method,
+        "dof": dof,
+        "depth_fused": depth_fused,
+        "covariance_convention": COVARIANCE_CONVENTION,
+        "sessions": entries,
+    }
+
+
+def _targets_document(
+    target_names: Sequence[str],
+    target_paths: Sequence[Path | str],
+    sessions: Sequence[Session],
+    averages: dict[str, dict[str, PoseAverage]],
+    observations: Sequence[Observation],
+    world_targets: dict[str, tuple[FloatArray, FloatArray]],
+) -> dict[str, Any]:
+    document: dict[str, Any] = {}
+    for name, path in zip(target_names, target_paths, strict=True):
+        entry: dict[str, Any] = {"file": str(path)}
+        if name in world_targets:
+            pose, covariance = world_targets[name]
+            entry["T_W_m"] = _matrix(pose)
+            entry["covariance"] = _matrix(covariance)
+        per_session: dict[str, Any] = {}
+        for session in sessions:
+            average = averages[session.name].get(name)
+            if average is None:
+                continue
+            chosen = [o for o in observations if o.session == session.name and o.target == name]
+            per_session[session.name] = {
+                "observations": len(chosen),
+                "used": average.inlier_count,
+                "rejected": len(chosen) - average.inlier_count,
+                "rejected_stamps_ns": [
+                    o.stamp_ns for o, keep in zip(chosen, average.inliers, strict=True) if not keep
+                ],
+                "T_S_m": _matrix(average.pose),
+                "covariance": _matrix(average.covariance),
+                "mean_reprojection_rms_px": float(np.mean([o.reprojection_rms_px for o in chosen])),
+            }
+        entry["sessions"] = per_session
+        document[name] = entry
+    return document

@@ -1,0 +1,188 @@
+"""Session-to-session alignment: covariance propagation, 6 DoF, 4 DoF, placing sessions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from postproc.merge.align import (
+    TargetEstimate,
+    TargetPair,
+    align_4dof,
+    align_6dof,
+    align_sessions,
+    compose_with_covariance,
+    invert_with_covariance,
+    place_sessions,
+    tilt_between_rad,
+    yaw_rad,
+)
+from postproc.merge.averaging import pose_residuals
+from shared.geometry import invert_pose, make_pose, pose_difference, so3_exp
+
+
+def _perturb(pose, cov, rng):
+    delta = rng.multivariate_normal(np.zeros(6), cov)
+    return make_pose(so3_exp(delta[:3]) @ pose[:3, :3], pose[:3, 3] + delta[3:])
+
+
+def _perturb_many(pose, cov, rng, n):
+    delta = rng.normal(size=(n, 6)) @ np.linalg.cholesky(cov).T
+    return make_pose(so3_exp(delta[:, :3]) @ pose[:3, :3], pose[:3, 3] + delta[:, 3:])
+
+
+def _random_cov(rng, rot_sigma, trans_sigma):
+    A = rng.normal(size=(6, 6)) * 0.3 + np.eye(6)
+    cov = A @ A.T
+    scale = np.diag([rot_sigma] * 3 + [trans_sigma] * 3)
+    return scale @ cov @ scale
+
+
+def test_compose_and_invert_covariances_match_monte_carlo():
+    rng = np.random.default_rng(8)
+    a_from_b = make_pose(so3_exp([0.3, -0.5, 1.1]), [4.0, -2.0, 1.0])
+    b_from_c = make_pose(so3_exp([-0.7, 0.2, 0.4]), [1.0, 6.0, -3.0])
+    cov_ab = _random_cov(rng, 0.01, 0.02)
+    cov_bc = _random_cov(rng, 0.02, 0.01)
+    pose, cov = compose_with_covariance(a_from_b, cov_ab, b_from_c, cov_bc)
+    np.testing.assert_allclose(pose, a_from_b @ b_from_c)
+    samples = _perturb_many(a_from_b, cov_ab, rng, 4000) @ _perturb_many(
+        b_from_c, cov_bc, rng, 4000
+    )
+    r = pose_residuals(samples, pose)
+    np.testing.assert_allclose(np.cov(r.T), cov, atol=0.08 * np.abs(cov).max())
+    inverse, cov_inv = invert_with_covariance(a_from_b, cov_ab)
+    samples = invert_pose(_perturb_many(a_from_b, cov_ab, rng, 4000))
+    r = pose_residuals(samples, inverse)
+    np.testing.assert_allclose(np.cov(r.T), cov_inv, atol=0.08 * np.abs(cov_inv).max())
+
+
+def _scene(rng, a_from_b, targets_in_a, rot_sigma, trans_sigma, tilt_noise=True):
+    """Target estimates in A and B with independent noise of the given sigmas."""
+    cov = np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
+    pairs = []
+    for i, a_from_m in enumerate(targets_in_a):
+        b_from_m = invert_pose(a_from_b) @ a_from_m
+        pairs.append(
+            TargetPair(
+                f"t{i}",
+                _perturb(a_from_m, cov, rng) if tilt_noise else a_from_m,
+                cov,
+                _perturb(b_from_m, cov, rng) if tilt_noise else b_from_m,
+                cov,
+            )
+        )
+    return pairs
+
+
+def _gravity_aligned(yaw, t):
+    c, s = np.cos(yaw), np.sin(yaw)
+    return make_pose([[c, -s, 0], [s, c, 0], [0, 0, 1]], t)
+
+
+TARGETS = [
+    make_pose(so3_exp([0.2, 0.1, 0.5]), [12.0, 4.0, -3.0]),
+    make_pose(so3_exp([-0.3, 0.2, -0.8]), [22.0, -6.0, -4.0]),
+]
+
+
+def test_noise_free_alignment_is_exact_in_4_and_6_dof():
+    rng = np.random.default_rng(1)
+    truth = _gravity_aligned(0.7, [3.0, -1.0, 0.5])
+    pairs = _scene(rng, truth, TARGETS, 0.01, 0.01, tilt_noise=False)
+    for result in (align_6dof(pairs), align_4dof(pairs)):
+        rot, trans = pose_difference(result.a_from_b, truth)
+        assert rot < 1e-9 and trans < 1e-9
+        assert all(r < 1e-9 and t < 1e-9 for r, t in result.residuals_rad_m)
+
+
+def test_4dof_beats_6dof_on_gravity_aligned_sessions():
+    rng = np.random.default_rng(2)
+    truth = _gravity_aligned(-1.1, [5.0, 2.0, -0.3])
+    err4, err6 = [], []
+    for _ in range(60):
+        pairs = _scene(rng, truth, TARGETS, np.deg2rad(0.5), 0.01)
+        err4.append(pose_difference(align_4dof(pairs).a_from_b, truth))
+        err6.append(pose_difference(align_6dof(pairs).a_from_b, truth))
+    err4, err6 = np.array(err4), np.array(err6)
+    # Target tilt error times the ~20 m lever arm hurts only the 6-DoF fit.
+    assert np.sqrt(np.mean(err4[:, 1] ** 2)) < 0.5 * np.sqrt(np.mean(err6[:, 1] ** 2))
+    assert np.sqrt(np.mean(err4[:, 0] ** 2)) < np.sqrt(np.mean(err6[:, 0] ** 2))
+    result = align_4dof(pairs)
+    assert tilt_between_rad(result.a_from_b, np.eye(4)) == 0.0
+    assert np.all(result.covariance[:2] == 0.0)
+    assert result.dof == 4
+
+
+def test_4dof_covariance_predicts_its_error():
+    rng = np.random.default_rng(3)
+    truth = _gravity_aligned(2.5, [1.0, 1.0, 1.0])
+    errors, covs = [], []
+    for _ in range(200):
+        pairs = _scene(rng, truth, TARGETS, np.deg2rad(0.5), 0.02)
+        result = align_4dof(pairs)
+        errors.append(pose_residuals(result.a_from_b[None], truth)[0])
+        covs.append(result.covariance)
+    errors = np.array(errors)
+    predicted = np.mean(covs, axis=0)
+    for k in (2, 3, 4, 5):
+        assert np.mean(errors[:, k] ** 2) / predicted[k, k] == pytest.approx(1.0, abs=0.3)
+
+
+def test_6dof_with_one_target_is_the_candidate():
+    rng = np.random.default_rng(4)
+    truth = make_pose(so3_exp([0.1, 0.2, 0.3]), [1.0, 2.0, 3.0])
+    pairs = _scene(rng, truth, TARGETS[:1], 0.01, 0.01)
+    result = align_6dof(pairs)
+    np.testing.assert_allclose(result.a_from_b, pairs[0].candidate()[0], atol=1e-9)
+
+
+def test_yaw_of_a_rotation_about_z():
+    assert yaw_rad(_gravity_aligned(3.0, [0, 0, 0])[:3, :3]) == pytest.approx(3.0)
+
+
+def test_place_sessions_chains_and_leaves_unconnected_sessions_out():
+    rng = np.random.default_rng(5)
+    world_from = {
+        "a": np.eye(4),
+        "b": _gravity_aligned(0.5, [3.0, 0.0, 0.0]),
+        "c": _gravity_aligned(-0.4, [0.0, 5.0, 1.0]),
+        "d": _gravity_aligned(1.0, [1.0, 1.0, 1.0]),
+    }
+    world_targets = {
+        "bow": TARGETS[0],
+        "mid": TARGETS[1],
+        "stern": make_pose(np.eye(3), [40.0, 0.0, -5.0]),
+        "lonely": make_pose(np.eye(3), [60.0, 0.0, -5.0]),
+    }
+    seen = {"a": ["bow"], "b": ["bow", "mid"], "c": ["mid", "stern"], "d": ["lonely"]}
+    cov = np.diag([np.deg2rad(0.1) ** 2] * 3 + [0.005**2] * 3)
+    estimates = {
+        s: {
+            m: TargetEstimate(
+                _perturb(invert_pose(world_from[s]) @ world_targets[m], cov, rng), cov
+            )
+            for m in names
+        }
+        for s, names in seen.items()
+    }
+    placed = place_sessions(estimates, "a", dof=4)
+    assert set(placed) == {"a", "b", "c"}
+    assert placed["c"].via == ("b",)
+    for s in ("b", "c"):
+        rot, trans = pose_difference(placed[s].world_from_session, world_from[s])
+        assert np.rad2deg(rot) < 0.5 and trans < 0.1
+    # Uncertainty grows along the chain a -> b -> c.
+    assert np.trace(placed["c"].covariance) > np.trace(placed["b"].covariance)
+    assert placed["b"].diagnostic_6dof is not None
+
+
+def test_align_raise_paths():
+    with pytest.raises(ValueError, match="no shared target"):
+        align_6dof([])
+    with pytest.raises(ValueError, match="no shared target"):
+        align_4dof([])
+    with pytest.raises(ValueError, match="dof must be 4 or 6"):
+        align_sessions([], dof=5)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="reference"):
+        place_sessions({"a": {}}, "z", dof=6)

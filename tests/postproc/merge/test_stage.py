@@ -1,0 +1,268 @@
+"""The merge stage end to end on small synthetic SLAM folders, and the CLI as a subprocess."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from postproc.merge.stage import MergeOptions, pass_labels, run, session_names
+from postproc.merge.synthetic import SurveyOptions, default_camera, default_targets, make_survey
+from shared.calibration.aprilgrid import AprilGridTarget
+from shared.calibration.kalibr import write_target_yaml
+from shared.errors import InputError, OutputExistsError, StageError
+from shared.formats.tum import read_tum, write_tum
+from shared.geometry import invert_pose, make_pose, pose_difference
+from shared.trajectory import Trajectory
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    """Three dives: 1 and 2 film the bow and midship grids, 3 only a stern grid."""
+    root = tmp_path_factory.mktemp("survey")
+    targets = default_targets()
+    stern = AprilGridTarget(
+        tag_rows=2, tag_cols=4, tag_size_m=0.088, tag_spacing_ratio=0.3, tag_id_offset=28
+    )
+    targets["stern"] = (stern, make_pose(np.eye(3), [30.0, -2.0, -12.0]))
+    options = SurveyOptions(
+        sessions=3,
+        targets=targets,
+        passes_per_target=1,
+        keyframes_per_pass=6,
+        distance_m=(0.6, 1.0),
+        camera=default_camera().scaled(0.5),
+        outlier_fraction=0.1,
+        skip_targets={0: ("stern",), 1: ("stern",), 2: ("bow", "midship")},
+    )
+    folders, target_paths, truth = make_survey(root, options, seed=3)
+    return root, folders, target_paths, truth
+
+
+def _copy(survey, tmp_path):
+    _root, folders, target_paths, truth = survey
+    new_folders = []
+    for folder in folders:
+        shutil.copytree(folder, tmp_path / folder.name)
+        new_folders.append(tmp_path / folder.name)
+    return new_folders, target_paths, truth
+
+
+def _relative_truth(truth, a, b):
+    return invert_pose(truth.world_from_session[a]) @ truth.world_from_session[b]
+
+
+def test_stage_places_sessions_and_writes_every_output(survey, tmp_path):
+    folders, target_paths, truth = _copy(survey, tmp_path)
+    out = tmp_path / "merged"
+    path = run(MergeOptions(), folders, target_paths, out)
+    assert path == out / "transforms.json"
+    document = json.loads(path.read_text())
+    assert document["reference"] == "dive1"
+    assert document["dof"] == 6 and document["depth_fused"] is False
+    sessions = document["sessions"]
+    assert sessions["dive1"]["placed"] and sessions["dive2"]["placed"]
+    np.testing.assert_allclose(sessions["dive1"]["T_W_S"], np.eye(4))
+    estimate = np.array(sessions["dive2"]["T_W_S"])
+    rot, trans = pose_difference(estimate, _relative_truth(truth, "dive1", "dive2"))
+    assert np.rad2deg(rot) < 0.5 and trans < 0.05
+    covariance = np.array(sessions["dive2"]["covariance"])
+    assert covariance.shape == (6, 6)
+    np.testing.assert_allclose(covariance, covariance.T)
+    assert np.all(np.linalg.eigvalsh(covariance) > 0)
+    assert sorted(sessions["dive2"]["targets_used"]) == ["bow", "midship"]
+    # Dive 3 shares no target: reported, not placed, no merged trajectory.
+    assert sessions["dive3"]["placed"] is False
+    assert "SfM" in sessions["dive3"]["reason"]
+    assert not (out / "dive3").exists()
+    merged = read_tum(out / "dive2" / "keyframes_merged.tum")
+    original = read_tum(folders[1] / "keyframes.tum")
+    np.testing.assert_allclose(merged.poses, estimate @ original.poses, atol=1e-9)
+    targets = json.loads((out / "targets.json").read_text())
+    bow = targets["bow"]["sessions"]["dive1"]
+    assert bow["observations"] == bow["used"] + bow["rejected"]
+    assert bow["observations"] >= 4
+    assert "T_W_m" in targets["bow"]
+    # Only an unplaced session saw the stern grid: it has no pose in W.
+    assert "T_W_m" not in targets["stern"] and "dive3" in targets["stern"]["sessions"]
+    world_bow = np.array(targets["bow"]["T_W_m"])
+    true_bow = invert_pose(truth.world_from_session["dive1"]) @ truth.world_from_target["bow"]
+    assert pose_difference(world_bow, true_bow)[1] < 0.1
+    for name in ("merge_top.png", "merge_side.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # Done already: skipped (nothing rewritten) unless overwrite.
+    stamp = path.stat().st_mtime_ns
+    assert run(MergeOptions(), folders, target_paths, out) == path
+    assert path.stat().st_mtime_ns == stamp
+    run(MergeOptions(reference="dive2", plot=False), folders, target_paths, out, overwrite=True)
+    assert json.loads(path.read_text())["reference"] == "dive2"
+
+
+def test_paper_method_and_4dof(survey, tmp_path):
+    folders, target_paths, truth = _copy(survey, tmp_path)
+    expected = _relative_truth(truth, "dive1", "dive2")
+    for method, dof in (("paper", "auto"), ("ours", 4)):
+        out = tmp_path / f"{method}_{dof}"
+        document = json.loads(
+            run(
+                MergeOptions(method=method, dof=dof, plot=False), folders[:2], target_paths, out
+            ).read_text()
+        )
+        assert document["method"] == method
+        entry = document["sessions"]["dive2"]
+        rot, trans = pose_difference(np.array(entry["T_W_S"]), expected)
+        assert np.rad2deg(rot) < 3.0 and trans < 0.2
+        if dof == 4:
+            assert document["dof"] == 4
+            assert "diagnostic_6dof" in entry
+            assert entry["diagnostic_6dof"]["rotation_difference_deg"] < 1.0
+
+
+def _add_depth(folder: Path, z_shift_m: float) -> None:
+    """A depth stage output beside the folder: the body trajectory shifted to true depth."""
+    keyframes = read_tum(folder / "keyframes.tum")
+    write_tum(folder / "trajectory.tum", keyframes)
+    shifted = make_pose(np.eye(3), [0.0, 0.0, z_shift_m]) @ keyframes.poses
+    write_tum(folder / "depth" / "trajectory_world.tum", Trajectory(keyframes.stamps_ns, shifted))
+
+
+def test_depth_fused_sessions_are_detected_and_aligned_in_4dof(survey, tmp_path):
+    folders, target_paths, truth = _copy(survey, tmp_path)
+    _add_depth(folders[0], -10.0)
+    _add_depth(folders[1], -12.0)
+    out = tmp_path / "merged"
+    document = json.loads(run(MergeOptions(plot=False), folders[:2], target_paths, out).read_text())
+    assert document["depth_fused"] is True and document["dof"] == 4
+    shift = {name: make_pose(np.eye(3), [0, 0, z]) for name, z in (("dive1", -10), ("dive2", -12))}
+    expected = (
+        shift["dive1"] @ _relative_truth(truth, "dive1", "dive2") @ invert_pose(shift["dive2"])
+    )
+    estimate = np.array(document["sessions"]["dive2"]["T_W_S"])
+    rot, trans = pose_difference(estimate, expected)
+    assert np.rad2deg(rot) < 0.5 and trans < 0.05
+    # Only one session fused: both fall back to their SLAM frames (6 DoF).
+    out2 = tmp_path / "mixed"
+    mixed = json.loads(
+        run(MergeOptions(plot=False), [folders[0], folders[2]], target_paths, out2).read_text()
+    )
+    assert mixed["depth_fused"] is False and mixed["dof"] == 6
+    with pytest.raises(InputError, match="depth fusion requested"):
+        run(MergeOptions(depth_fused=True), [folders[2]], target_paths, tmp_path / "x")
+
+
+def test_session_names_are_made_unique():
+    assert session_names([Path("a/dive1/slam"), Path("a/dive2/slam")]) == [
+        "dive1_slam",
+        "dive2_slam",
+    ]
+    assert session_names([Path("x/one"), Path("x/two")]) == ["one", "two"]
+    with pytest.raises(InputError, match="twice"):
+        session_names([Path("x/one"), Path("x/./one")])
+
+
+def test_raise_paths(survey, tmp_path):
+    folders, target_paths, _ = _copy(survey, tmp_path)
+    out = tmp_path / "out"
+    bad_options = [
+        (MergeOptions(method="euler"), "unknown method"),  # type: ignore[arg-type]
+        (MergeOptions(dof=5), "dof must be"),  # type: ignore[arg-type]
+        (MergeOptions(rotation_mean="euler"), "rotation_mean"),  # type: ignore[arg-type]
+        (MergeOptions(outlier_rule="sigma"), "outlier_rule"),  # type: ignore[arg-type]
+        (MergeOptions(min_tags=0), "min_tags"),
+        (MergeOptions(mad_threshold=-1.0), "mad_threshold"),
+        (MergeOptions(reference="dive9"), "reference 'dive9'"),
+    ]
+    for options, message in bad_options:
+        with pytest.raises(StageError, match=message):
+            run(options, folders, target_paths, out)
+    with pytest.raises(StageError, match="no SLAM folder"):
+        run(MergeOptions(), [], target_paths, out)
+    with pytest.raises(StageError, match="no target YAML"):
+        run(MergeOptions(), folders, [], out)
+    with pytest.raises(InputError, match="not a folder"):
+        run(MergeOptions(), [tmp_path / "missing"], target_paths, out)
+    # Two grids claiming the same ids.
+    clash = write_target_yaml(
+        tmp_path / "clash.yaml",
+        AprilGridTarget(tag_rows=1, tag_cols=2, tag_size_m=0.1, tag_spacing_ratio=0.3),
+    )
+    with pytest.raises(InputError, match="tagIdOffset"):
+        run(MergeOptions(), folders, [target_paths[0], clash], out)
+    same_name = tmp_path / "other"
+    same_name.mkdir()
+    shutil.copy(target_paths[0], same_name / target_paths[0].name)
+    with pytest.raises(InputError, match="share a name"):
+        run(MergeOptions(), folders, [target_paths[0], same_name / target_paths[0].name], out)
+    with pytest.raises(InputError, match="camera 'cam7'"):
+        run(MergeOptions(camera="cam7"), folders, target_paths, out)
+    broken = folders[0]
+    (broken / "calib" / "camchain.yaml").unlink()
+    with pytest.raises(InputError, match=r"camchain\.yaml"):
+        run(MergeOptions(), [broken], target_paths, out)
+    for image in (folders[1] / "keyframes").iterdir():
+        image.unlink()
+    with pytest.raises(InputError, match="no keyframe images"):
+        run(MergeOptions(), [folders[1]], target_paths, out)
+    unreadable = folders[2] / "keyframes" / sorted((folders[2] / "keyframes").iterdir())[0].name
+    unreadable.write_bytes(b"not a png")
+    with pytest.raises(InputError, match="cannot read"):
+        run(MergeOptions(), [folders[2]], target_paths, out)
+    assert not out.exists()
+
+
+def test_outputs_are_not_clobbered(survey, tmp_path):
+    folders, target_paths, _ = _copy(survey, tmp_path)
+    out = tmp_path / "out"
+    (out / "dive1").mkdir(parents=True)
+    (out / "dive1" / "keyframes_merged.tum").write_text("precious\n")
+    with pytest.raises(OutputExistsError):
+        run(MergeOptions(plot=False), folders[:2], target_paths, out)
+    assert (out / "dive1" / "keyframes_merged.tum").read_text() == "precious\n"
+
+
+def test_cli_subprocess(survey, tmp_path):
+    folders, target_paths, _ = _copy(survey, tmp_path)
+    env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
+    command = [sys.executable, "-m", "postproc.cli", "merge", str(folders[0]), str(folders[1])]
+    command += ["--targets", *map(str, target_paths), "--out", str(tmp_path / "out"), "--no-plot"]
+    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert Path(done.stdout.strip()) == tmp_path / "out" / "transforms.json"
+    assert json.loads((tmp_path / "out" / "transforms.json").read_text())["sessions"]["dive2"][
+        "placed"
+    ]
+    failed = subprocess.run(
+        [*command, "--reference", "nope", "--overwrite"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert failed.returncode == 1
+    assert failed.stderr.strip().splitlines()[-1].startswith("wreckmap-post: error: merge:")
+
+
+def test_pass_labels_split_on_time_gaps():
+    second = 1_000_000_000
+    stamps = [0, 1 * second, 30 * second, 2 * second, 31 * second, 90 * second]
+    np.testing.assert_array_equal(pass_labels(stamps, gap_s=5.0), [0, 0, 1, 0, 1, 2])
+    assert pass_labels([], gap_s=5.0).shape == (0,)
+
+
+def test_depth_trajectory_must_overlap_the_keyframes(survey, tmp_path):
+    folders, target_paths, _ = _copy(survey, tmp_path)
+    keyframes = read_tum(folders[0] / "keyframes.tum")
+    later = Trajectory(keyframes.stamps_ns + 10**12, keyframes.poses)
+    write_tum(folders[0] / "trajectory.tum", later)
+    write_tum(folders[0] / "depth" / "trajectory_world_fused.tum", later)
+    with pytest.raises(InputError, match="no overlap"):
+        run(MergeOptions(plot=False), folders[:1], target_paths, tmp_path / "out")
