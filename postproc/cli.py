@@ -17,6 +17,7 @@ example:
 # Command groups, in the order data flows through the stages.
 COMMAND_MODULES: tuple[str, ...] = (
     "postproc.commands.calibrate",
+    "postproc.commands.slam",
     "postproc.commands.depth",
     "postproc.commands.merge",
 )

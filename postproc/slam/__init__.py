@@ -1,0 +1,21 @@
+"""Keyframe visual-inertial SLAM (stage 2 of docs/method.md; replaces SVIn2).
+
+Modules, from pixels to the result folder:
+
+- `frontend`: grey, resize, CLAHE, grid-spread corners, KLT with a gyro-seeded
+  guess, forward-backward and essential-matrix RANSAC checks -> `FrameTracks`.
+- `keyframes`: the OKVIS/SVIn2 overlap / match-ratio rule with interval bounds.
+- `initialization`: gravity from the rotation-compensated accelerometer mean,
+  linear visual-inertial alignment (velocity, accelerometer bias, scale),
+  zero-velocity detection.
+- `backend`: GTSAM ISAM2 smoother with CombinedImuFactor between keyframes and
+  Huber projection factors to triangulated landmarks.
+- `loop_closure`: gated candidates, ORB matching, PnP RANSAC, robust
+  between-factors in the same graph.
+- `estimator`: ties the above together frame by frame (pure computation).
+- `visual_only`: the IMU-free baseline (`--no-imu`).
+- `inputs`: EuRoC and session-folder readers behind one Protocol.
+- `stage`: `SlamOptions` and `run(options, input_path, out_dir)` writing the
+  SLAM result folder of docs/conventions.md.
+- `synthetic`: feature-level and rendered-wall simulation for tests and benchmarks.
+"""

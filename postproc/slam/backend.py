@@ -1,0 +1,621 @@
+"""Keyframe visual-inertial smoother on GTSAM: IMU preintegration, projections, ISAM2.
+
+Each keyframe k has a pose X(k) = T_S_B (body = IMU in the session frame S),
+a velocity V(k) in S (m/s) and IMU biases B(k). Consecutive keyframes are tied
+by a `CombinedImuFactor` (Forster et al. 2017 on-manifold preintegration, with
+the bias random walk inside the factor); every landmark L(j) (a point in S,
+metres) is tied to the keyframes that saw it by a `GenericProjectionFactorCal3_S2`
+through the camera extrinsic T_B_C, under a Huber loss. ISAM2 (Kaess et al.
+2012) keeps the full smoothing solution current as keyframes arrive.
+
+Measurements are undistorted normalised coordinates (the frontend removes the
+lens model), scaled by the focal length so that the noise is in pixels: the
+factors use a distortion-free `Cal3_S2(f, f, 0, 0, 0)`.
+
+A landmark joins the graph only once its track has been seen in
+`min_observations` keyframes with at least `min_parallax_deg` between the
+extreme rays, triangulates in front of every camera and reprojects within
+`max_reprojection_px`: low-parallax points make the linear system
+ill-conditioned, and a diver often drifts slowly along the view direction.
+
+No file I/O here (gtsam is imported inside the class so the CLI stays light).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from postproc.slam.types import FloatArray, ImuSamples, IntArray
+from shared.calibration.kalibr import ImuNoise
+from shared.errors import StageError
+from shared.geometry import invert_pose, make_pose
+
+LOG = logging.getLogger(__name__)
+
+GRAVITY_M_S2 = 9.81
+
+
+@dataclass(kw_only=True)
+class BackendOptions:
+    """Settings of the smoother (units in the names).
+
+    pixel_sigma_px: standard deviation of a tracked feature position (frontend pixels).
+    huber_k: Huber threshold in standard deviations (robust to leftover outliers).
+    min_parallax_deg: smallest angle between a landmark's extreme rays to add it.
+    min_observations: keyframes that must see a track before it becomes a landmark.
+    max_reprojection_px: triangulation check (frontend pixels).
+    max_gate_px: a new observation of a landmark farther than this from its predicted
+        projection (frontend pixels) is dropped.
+    min_depth_m / max_depth_m: accepted landmark depth in front of each camera.
+    imu_noise_inflation: multiplies the Kalibr noise densities and random walks
+        (datasheet values are optimistic on a vibrating, warming diver rig).
+    prior_tilt_sigma_rad: first keyframe roll/pitch uncertainty (gravity from a mean
+        accelerometer reading); yaw and position are fixed (they define S).
+    prior_velocity_sigma_m_s: first keyframe velocity around zero (diver speeds < 1 m/s).
+    prior_accel_bias_sigma_m_s2 / prior_gyro_bias_sigma_rad_s: initial bias uncertainty.
+    zero_velocity_sigma_m_s: strength of the zero-velocity constraint while still.
+    relinearize_threshold: ISAM2 relinearisation threshold (tangent-space units).
+    extra_iterations: additional ISAM2 updates after each keyframe.
+    factorization: ISAM2's "QR" (slower, survives the poor conditioning of long
+        IMU-only stretches, whose tiny bias random walks Cholesky rejects) or "CHOLESKY".
+    final_batch: refine the whole graph with Levenberg-Marquardt at the end.
+    gravity_m_s2: magnitude of gravity.
+    """
+
+    pixel_sigma_px: float = 1.0
+    huber_k: float = 2.0
+    min_parallax_deg: float = 2.0
+    min_observations: int = 3
+    max_reprojection_px: float = 4.0
+    max_gate_px: float = 15.0
+    min_depth_m: float = 0.2
+    max_depth_m: float = 40.0
+    imu_noise_inflation: float = 1.0
+    prior_tilt_sigma_rad: float = 0.03
+    prior_velocity_sigma_m_s: float = 0.5
+    prior_accel_bias_sigma_m_s2: float = 0.1
+    prior_gyro_bias_sigma_rad_s: float = 0.01
+    zero_velocity_sigma_m_s: float = 0.005
+    relinearize_threshold: float = 0.1
+    extra_iterations: int = 0
+    factorization: str = "CHOLESKY"
+    final_batch: bool = True
+    gravity_m_s2: float = GRAVITY_M_S2
+
+
+@dataclass
+class KeyframeState:
+    """Estimated state of one keyframe (session frame S)."""
+
+    stamp_ns: int  # IMU clock
+    session_from_body: FloatArray  # T_S_B (4, 4)
+    velocity_m_s: FloatArray  # (3,) in S
+    accel_bias_m_s2: FloatArray  # (3,)
+    gyro_bias_rad_s: FloatArray  # (3,)
+
+
+@dataclass
+class BackendStats:
+    """Counters for stats.json."""
+
+    keyframes: int = 0
+    landmarks: int = 0
+    projection_factors: int = 0
+    still_keyframes: int = 0
+    rejected_triangulations: int = 0
+    gated_observations: int = 0
+    loop_closures: int = 0
+    reasons: dict[str, int] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- pure helpers
+
+
+def gtsam_reason(error: BaseException) -> str:
+    """GTSAM's multi-line exception text in one line (what failed and near which variable)."""
+    return " ".join(str(error).split())[:160]
+
+
+def imu_intervals(
+    imu: ImuSamples, start_ns: int, end_ns: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Piecewise-constant IMU readings covering [start_ns, end_ns] exactly.
+
+    The interval is cut at every sample time inside it; each piece gets the
+    reading linearly interpolated at its midpoint (second-order accurate, and
+    the keyframe times need not fall on samples). Returns (accel (P, 3) m/s^2,
+    gyro (P, 3) rad/s, dt (P,) s). Raises StageError if the IMU does not cover
+    the interval.
+    """
+    stamps = imu.stamps_ns
+    if len(stamps) < 2 or start_ns < stamps[0] or end_ns > stamps[-1]:
+        raise StageError(
+            f"IMU samples do not cover [{start_ns}, {end_ns}] ns (IMU spans "
+            f"{stamps[0] if len(stamps) else 'nothing'} to {stamps[-1] if len(stamps) else ''})"
+        )
+    # Only the samples around the interval (long recordings hold millions).
+    lo = max(int(np.searchsorted(stamps, start_ns, side="right")) - 1, 0)
+    hi = min(int(np.searchsorted(stamps, end_ns, side="left")) + 1, len(stamps))
+    stamps = stamps[lo:hi]
+    inner = stamps[(stamps > start_ns) & (stamps < end_ns)]
+    cuts = np.concatenate([[start_ns], inner, [end_ns]]).astype(np.int64)
+    # Times relative to start keep float precision at the nanosecond level.
+    rel = (stamps - start_ns).astype(np.float64)
+    mid = ((cuts[:-1] - start_ns).astype(np.float64) + (cuts[1:] - start_ns).astype(np.float64)) / 2
+    accel = np.column_stack([np.interp(mid, rel, imu.accel_m_s2[lo:hi, i]) for i in range(3)])
+    gyro = np.column_stack([np.interp(mid, rel, imu.gyro_rad_s[lo:hi, i]) for i in range(3)])
+    dt = np.diff(cuts).astype(np.float64) * 1e-9
+    return accel, gyro, dt
+
+
+def triangulate_dlt(cam_from_session: FloatArray, xy_normalised: FloatArray) -> FloatArray:
+    """Point in S (3,) seen at normalised coordinates (N, 2) by cameras `T_C_S` (N, 4, 4).
+
+    Linear triangulation (Hartley & Zisserman, 12.2) on the normalised
+    projection matrices [R | t]; NaN when the system is degenerate.
+    """
+    P = cam_from_session[:, :3, :]
+    rows = np.concatenate(
+        [
+            xy_normalised[:, 0:1] * P[:, 2, :] - P[:, 0, :],
+            xy_normalised[:, 1:2] * P[:, 2, :] - P[:, 1, :],
+        ]
+    )
+    _, _, vt = np.linalg.svd(rows)
+    h = vt[-1]
+    if abs(h[3]) < 1e-12:
+        return np.full(3, np.nan)
+    point: FloatArray = h[:3] / h[3]
+    return point
+
+
+def parallax_deg(session_from_cam: FloatArray, xy_normalised: FloatArray) -> float:
+    """Largest angle (degrees) between the rays of one point seen from several cameras."""
+    rays = np.column_stack([xy_normalised, np.ones(len(xy_normalised))])
+    rays_s = np.einsum("nij,nj->ni", session_from_cam[:, :3, :3], rays)
+    rays_s /= np.linalg.norm(rays_s, axis=1, keepdims=True)
+    cos = np.clip(rays_s @ rays_s.T, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos.min())))
+
+
+# --------------------------------------------------------------------------------- backend
+
+
+class VisualInertialBackend:
+    """Incremental keyframe smoother. Call `start`, then `add_keyframe` in time order.
+
+    focal_px: focal length of the frontend image (pixels), to express the
+        normalised measurements in pixels.
+    imu_from_cam: `T_B_C` (4, 4).
+    imu_noise: Kalibr IMU noise (continuous-time densities).
+    """
+
+    def __init__(
+        self,
+        options: BackendOptions,
+        *,
+        focal_px: float,
+        imu_from_cam: FloatArray,
+        imu_noise: ImuNoise,
+    ) -> None:
+        import gtsam
+
+        self.gtsam = gtsam
+        self.options = options
+        self.focal_px = float(focal_px)
+        self.imu_from_cam = np.asarray(imu_from_cam, dtype=np.float64)
+        self.cam_from_imu = invert_pose(self.imu_from_cam)
+        self.stats = BackendStats()
+        self._X = gtsam.symbol_shorthand.X
+        self._V = gtsam.symbol_shorthand.V
+        self._B = gtsam.symbol_shorthand.B
+        self._L = gtsam.symbol_shorthand.L
+
+        params = gtsam.PreintegrationCombinedParams.MakeSharedU(options.gravity_m_s2)
+        inflate = options.imu_noise_inflation
+        params.setAccelerometerCovariance(
+            np.eye(3) * (inflate * imu_noise.accelerometer_noise_density) ** 2
+        )
+        params.setGyroscopeCovariance(
+            np.eye(3) * (inflate * imu_noise.gyroscope_noise_density) ** 2
+        )
+        params.setBiasAccCovariance(
+            np.eye(3) * (inflate * imu_noise.accelerometer_random_walk) ** 2
+        )
+        params.setBiasOmegaCovariance(np.eye(3) * (inflate * imu_noise.gyroscope_random_walk) ** 2)
+        # Integration of velocity into position: a small regulariser, as GTSAM's examples use.
+        params.setIntegrationCovariance(np.eye(3) * 1e-8)
+        self._preint_params = params
+
+        self._calibration = gtsam.Cal3_S2(self.focal_px, self.focal_px, 0.0, 0.0, 0.0)
+        self._body_P_cam = gtsam.Pose3(self.imu_from_cam)
+        self._pixel_noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, options.pixel_sigma_px),
+        )
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(options.relinearize_threshold)
+        isam_params.relinearizeSkip = 1
+        isam_params.setFactorization(options.factorization)
+        self._isam = gtsam.ISAM2(isam_params)
+
+        self._stamps_ns: list[int] = []
+        self._poses: list[FloatArray] = []  # latest estimates T_S_B per keyframe
+        self._velocities: list[FloatArray] = []
+        self._biases: list[Any] = []
+        # track id -> [(keyframe index, xy)], for tracks not yet landmarks
+        self._pending: dict[int, list[tuple[int, FloatArray]]] = {}
+        self._landmarks: set[int] = set()
+
+    # ------------------------------------------------------------------ public interface
+
+    @property
+    def num_keyframes(self) -> int:
+        return len(self._stamps_ns)
+
+    def start(
+        self,
+        stamp_ns: int,
+        session_from_body_rotation: FloatArray,
+        track_ids: IntArray,
+        xy_normalised: FloatArray,
+        *,
+        velocity_m_s: FloatArray | None = None,
+        accel_bias_m_s2: FloatArray | None = None,
+    ) -> None:
+        """First keyframe at `stamp_ns` (IMU clock) with rotation `R_S_B` from gravity.
+
+        `velocity_m_s` (in S) and `accel_bias_m_s2` come from the visual-inertial
+        alignment when it succeeded (zero otherwise); they centre the priors.
+        """
+        gtsam = self.gtsam
+        if self._stamps_ns:
+            raise RuntimeError("start() called twice")
+        o = self.options
+        pose = np.eye(4)
+        pose[:3, :3] = session_from_body_rotation
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        # Pose3's tangent is [rotation, translation] in the body frame. Roll and pitch
+        # (from gravity) are uncertain; yaw about S's z and the position define S and are
+        # pinned. Rotate the S-frame rotation covariance into the body frame.
+        R_B_S = session_from_body_rotation.T
+        rot_cov_s = np.diag([o.prior_tilt_sigma_rad**2, o.prior_tilt_sigma_rad**2, 1e-8])
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = R_B_S @ rot_cov_s @ R_B_S.T
+        cov[3:, 3:] = np.eye(3) * 1e-8
+        pose_noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+        graph.add(gtsam.PriorFactorPose3(self._X(0), gtsam.Pose3(pose), pose_noise))
+        velocity = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, float)
+        bias = gtsam.imuBias.ConstantBias(
+            np.zeros(3) if accel_bias_m_s2 is None else np.asarray(accel_bias_m_s2, float),
+            np.zeros(3),
+        )
+        graph.add(
+            gtsam.PriorFactorVector(
+                self._V(0),
+                velocity,
+                gtsam.noiseModel.Isotropic.Sigma(3, o.prior_velocity_sigma_m_s),
+            )
+        )
+        bias_noise = gtsam.noiseModel.Diagonal.Sigmas(
+            np.concatenate(
+                [
+                    np.full(3, o.prior_accel_bias_sigma_m_s2),
+                    np.full(3, o.prior_gyro_bias_sigma_rad_s),
+                ]
+            )
+        )
+        graph.add(gtsam.PriorFactorConstantBias(self._B(0), bias, bias_noise))
+        values.insert(self._X(0), gtsam.Pose3(pose))
+        values.insert(self._V(0), velocity)
+        values.insert(self._B(0), bias)
+        self._isam.update(graph, values)
+        self._stamps_ns.append(int(stamp_ns))
+        self._poses.append(pose)
+        self._velocities.append(velocity)
+        self._biases.append(bias)
+        for tid, xy in zip(track_ids.tolist(), xy_normalised, strict=True):
+            self._pending[int(tid)] = [(0, xy.copy())]
+        self.stats.keyframes = 1
+
+    def predicted_rotation(self, imu: ImuSamples, stamp_ns: int) -> FloatArray:
+        """`R_Bprev_Bnow` from the gyro since the last keyframe, with its current bias."""
+        pim = self.preintegrate(imu, self._stamps_ns[-1], stamp_ns, self._biases[-1])
+        rotation: FloatArray = pim.deltaRij().matrix()
+        return rotation
+
+    def add_keyframe(
+        self,
+        stamp_ns: int,
+        imu: ImuSamples,
+        track_ids: IntArray,
+        xy_normalised: FloatArray,
+        *,
+        still: bool = False,
+    ) -> None:
+        """Add a keyframe at `stamp_ns` (IMU clock) with its features; update the smoother.
+
+        `imu` must cover the time since the previous keyframe. `still` adds a
+        zero-velocity and zero-motion constraint (see initialization.is_still).
+        """
+        gtsam = self.gtsam
+        if not self._stamps_ns:
+            raise RuntimeError("add_keyframe() before start()")
+        k = len(self._stamps_ns)
+        prev_stamp = self._stamps_ns[-1]
+        if stamp_ns <= prev_stamp:
+            raise StageError(f"keyframe at {stamp_ns} ns is not after the previous {prev_stamp} ns")
+        o = self.options
+        X, V, B = self._X, self._V, self._B
+        pim = gtsam.PreintegratedCombinedMeasurements(self._preint_params, self._biases[-1])
+        accel, gyro, dt = imu_intervals(imu, prev_stamp, stamp_ns)
+        for a, w, d in zip(accel, gyro, dt, strict=True):
+            pim.integrateMeasurement(a, w, d)
+        prev_state = gtsam.NavState(gtsam.Pose3(self._poses[-1]), self._velocities[-1])
+        predicted = pim.predict(prev_state, self._biases[-1])
+        pose_guess = predicted.pose().matrix()
+        vel_guess = np.asarray(predicted.velocity())
+        if still:
+            pose_guess = make_pose(pose_guess[:3, :3], self._poses[-1][:3, 3])
+            vel_guess = np.zeros(3)
+
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        graph.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), pim))
+        values.insert(X(k), gtsam.Pose3(pose_guess))
+        values.insert(V(k), vel_guess)
+        values.insert(B(k), self._biases[-1])
+        if still:
+            self.stats.still_keyframes += 1
+            graph.add(
+                gtsam.PriorFactorVector(
+                    V(k),
+                    np.zeros(3),
+                    gtsam.noiseModel.Isotropic.Sigma(3, o.zero_velocity_sigma_m_s),
+                )
+            )
+            span_s = (stamp_ns - prev_stamp) * 1e-9
+            graph.add(
+                gtsam.BetweenFactorPose3(
+                    X(k - 1),
+                    X(k),
+                    gtsam.Pose3(),
+                    # Rotation stays free (a hovering diver may look around); the
+                    # translation may move only as far as the velocity sigma allows.
+                    gtsam.noiseModel.Diagonal.Sigmas(
+                        np.concatenate(
+                            [np.full(3, 1.0), np.full(3, o.zero_velocity_sigma_m_s * span_s)]
+                        )
+                    ),
+                )
+            )
+
+        self._stamps_ns.append(int(stamp_ns))
+        self._poses.append(pose_guess)
+        self._velocities.append(vel_guess)
+        self._biases.append(self._biases[-1])
+
+        new_landmarks = self._add_visual_factors(k, track_ids, xy_normalised, graph, values)
+        try:
+            self._isam.update(graph, values)
+            for _ in range(o.extra_iterations):
+                self._isam.update()
+        except RuntimeError as error:
+            # GTSAM reports an ill-posed system (long stretches without landmarks, a
+            # diverged estimate) as RuntimeError; say where it happened.
+            raise StageError(
+                f"visual-inertial backend failed at keyframe {k} ({stamp_ns} ns, "
+                f"{len(self._landmarks)} landmarks): {gtsam_reason(error)}"
+            ) from error
+        self._refresh_recent(k)
+        self.stats.keyframes = k + 1
+        LOG.debug("keyframe %d: %d new landmarks, %d total", k, new_landmarks, len(self._landmarks))
+
+    def landmark_position(self, track_id: int) -> FloatArray | None:
+        """Current position in S (3,) of the landmark of `track_id`, None if it is none."""
+        if track_id not in self._landmarks:
+            return None
+        point: FloatArray = np.asarray(self._isam.calculateEstimatePoint3(self._L(track_id)))
+        return point
+
+    def cached_poses(self) -> list[FloatArray]:
+        """Latest pulled estimates `T_S_B` of all keyframes (older ones may lag slightly)."""
+        return list(self._poses)
+
+    def session_from_body(self, k: int) -> FloatArray:
+        """Current estimate of keyframe k's pose `T_S_B`."""
+        pose: FloatArray = self._isam.calculateEstimatePose3(self._X(k)).matrix()
+        return pose
+
+    def add_loop(
+        self,
+        old: int,
+        new: int,
+        old_from_new: FloatArray,
+        *,
+        rotation_sigma_rad: float,
+        translation_sigma_m: float,
+        cauchy_k: float,
+        iterations: int = 2,
+    ) -> None:
+        """Constrain keyframe `new` relative to keyframe `old` (`T_Bold_Bnew`), robustly."""
+        gtsam = self.gtsam
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k),
+            gtsam.noiseModel.Diagonal.Sigmas(
+                np.concatenate([np.full(3, rotation_sigma_rad), np.full(3, translation_sigma_m)])
+            ),
+        )
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(
+            gtsam.BetweenFactorPose3(self._X(old), self._X(new), gtsam.Pose3(old_from_new), noise)
+        )
+        try:
+            self._isam.update(graph, gtsam.Values())
+            for _ in range(iterations):
+                self._isam.update()
+        except RuntimeError as error:
+            raise StageError(
+                f"visual-inertial backend failed closing the loop {old} -> {new}: "
+                f"{gtsam_reason(error)}"
+            ) from error
+        self.stats.loop_closures += 1
+        self._refresh_recent(self.num_keyframes - 1)
+
+    def keyframe_states(self) -> list[KeyframeState]:
+        """Current estimates of every keyframe (after `finish`, the final ones)."""
+        return [
+            KeyframeState(
+                stamp_ns=s,
+                session_from_body=p.copy(),
+                velocity_m_s=v.copy(),
+                accel_bias_m_s2=np.asarray(b.accelerometer()).copy(),
+                gyro_bias_rad_s=np.asarray(b.gyroscope()).copy(),
+            )
+            for s, p, v, b in zip(
+                self._stamps_ns, self._poses, self._velocities, self._biases, strict=True
+            )
+        ]
+
+    def landmarks(self) -> tuple[IntArray, FloatArray]:
+        """Track ids (L,) and positions in S (L, 3) of the landmarks in the graph."""
+        ids = np.array(sorted(self._landmarks), dtype=np.int64)
+        if not len(ids):
+            return ids, np.zeros((0, 3))
+        estimate = self._estimate if hasattr(self, "_estimate") else self._isam.calculateEstimate()
+        points = np.array([estimate.atPoint3(self._L(int(i))) for i in ids], dtype=np.float64)
+        return ids, points.reshape(-1, 3)
+
+    def finish(self) -> None:
+        """Final estimate: ISAM2's, optionally refined by a batch Levenberg-Marquardt pass."""
+        gtsam = self.gtsam
+        estimate = self._isam.calculateEstimate()
+        if self.options.final_batch and self.num_keyframes > 1:
+            graph = self._isam.getFactorsUnsafe()
+            cleaned = gtsam.NonlinearFactorGraph()
+            for i in range(graph.size()):
+                factor = graph.at(i)
+                if factor is not None:
+                    cleaned.add(factor)
+            params = gtsam.LevenbergMarquardtParams()
+            params.setMaxIterations(30)
+            try:
+                estimate = gtsam.LevenbergMarquardtOptimizer(cleaned, estimate, params).optimize()
+            except RuntimeError as error:  # an indeterminant system: keep ISAM2's answer
+                LOG.warning("final batch refinement failed (%s); keeping the ISAM2 estimate", error)
+        self._estimate = estimate
+        for k in range(self.num_keyframes):
+            self._poses[k] = estimate.atPose3(self._X(k)).matrix()
+            self._velocities[k] = np.asarray(estimate.atVector(self._V(k)))
+            self._biases[k] = estimate.atConstantBias(self._B(k))
+
+    def preintegrate(self, imu: ImuSamples, start_ns: int, end_ns: int, bias: Any) -> Any:
+        """A fresh preintegration of `imu` over [start_ns, end_ns] with `bias` (for frame poses)."""
+        pim = self.gtsam.PreintegratedCombinedMeasurements(self._preint_params, bias)
+        if end_ns > start_ns:
+            accel, gyro, dt = imu_intervals(imu, start_ns, end_ns)
+            for a, w, d in zip(accel, gyro, dt, strict=True):
+                pim.integrateMeasurement(a, w, d)
+        return pim
+
+    def bias_of(self, k: int) -> Any:
+        """The gtsam bias object of keyframe k."""
+        return self._biases[k]
+
+    # ------------------------------------------------------------------------- internals
+
+    def _refresh_recent(self, k: int, window: int = 30) -> None:
+        """Pull the estimates of the last `window` keyframes (the ones tracks still need)."""
+        isam = self._isam
+        for i in range(max(0, k - window + 1), k + 1):
+            self._poses[i] = isam.calculateEstimatePose3(self._X(i)).matrix()
+        self._velocities[k] = np.asarray(isam.calculateEstimateVector(self._V(k)))
+        self._biases[k] = isam.calculateEstimateConstantBias(self._B(k))
+
+    def _projection_factor(self, k: int, track_id: int, xy: FloatArray) -> Any:
+        gtsam = self.gtsam
+        self.stats.projection_factors += 1
+        return gtsam.GenericProjectionFactorCal3_S2(
+            self.focal_px * np.asarray(xy, dtype=np.float64),
+            self._pixel_noise,
+            self._X(k),
+            self._L(track_id),
+            self._calibration,
+            self._body_P_cam,
+        )
+
+    def _add_visual_factors(
+        self,
+        k: int,
+        track_ids: IntArray,
+        xy_normalised: FloatArray,
+        graph: Any,
+        values: Any,
+    ) -> int:
+        o = self.options
+        seen_now: dict[int, list[tuple[int, FloatArray]]] = {}
+        cam_from_session_k = invert_pose(self._poses[k] @ self.imu_from_cam)
+        for tid_raw, xy in zip(track_ids.tolist(), xy_normalised, strict=True):
+            tid = int(tid_raw)
+            if tid in self._landmarks:
+                # Gate against the current estimate: a leftover outlier of the frontend
+                # must not drag a landmark (Huber bounds its pull, not its presence).
+                point = self._isam.calculateEstimatePoint3(self._L(tid))
+                p_c = cam_from_session_k[:3, :3] @ point + cam_from_session_k[:3, 3]
+                if p_c[2] > o.min_depth_m and (
+                    self.focal_px * np.linalg.norm(p_c[:2] / p_c[2] - xy) <= o.max_gate_px
+                ):
+                    graph.add(self._projection_factor(k, tid, xy))
+                else:
+                    self.stats.gated_observations += 1
+                continue
+            observations = self._pending.get(tid, [])
+            observations.append((k, xy.copy()))
+            seen_now[tid] = observations
+        # Tracks not seen in this keyframe have ended (the tracker is frame to frame).
+        self._pending = seen_now
+        added = 0
+        min_parallax = o.min_parallax_deg
+        for tid, observations in list(seen_now.items()):
+            if len(observations) < o.min_observations:
+                continue
+            frames = [i for i, _ in observations]
+            xy = np.array([p for _, p in observations])
+            session_from_cam = np.array([self._poses[i] @ self.imu_from_cam for i in frames])
+            if parallax_deg(session_from_cam, xy) < min_parallax:
+                continue
+            cam_from_session = invert_pose(session_from_cam)
+            point = triangulate_dlt(cam_from_session, xy)
+            if not self._triangulation_ok(point, cam_from_session, xy):
+                self.stats.rejected_triangulations += 1
+                # Keep only the latest observation: the older ones may hold the outlier.
+                seen_now[tid] = observations[-1:]
+                continue
+            values.insert(self._L(tid), point)
+            for i, p in observations:
+                graph.add(self._projection_factor(i, tid, p))
+            self._landmarks.add(tid)
+            del seen_now[tid]
+            added += 1
+        self.stats.landmarks = len(self._landmarks)
+        return added
+
+    def _triangulation_ok(
+        self, point: FloatArray, cam_from_session: FloatArray, xy: FloatArray
+    ) -> bool:
+        o = self.options
+        if not np.all(np.isfinite(point)):
+            return False
+        p_c = (
+            np.einsum("nij,j->ni", cam_from_session[:, :3, :3], point) + cam_from_session[:, :3, 3]
+        )
+        depth = p_c[:, 2]
+        if np.any(depth < o.min_depth_m) or np.any(depth > o.max_depth_m):
+            return False
+        error_px = self.focal_px * np.linalg.norm(p_c[:, :2] / depth[:, None] - xy, axis=1)
+        return bool(np.all(error_px <= o.max_reprojection_px))

@@ -1,0 +1,300 @@
+"""Camera-rate frontend: grid-spread corners tracked by pyramidal KLT, outliers removed.
+
+Pure image processing (OpenCV), no file I/O. Each image is converted to
+grey, shrunk to `width_px` (default 960, SVIn2's GoPro setting), optionally
+equalised with CLAHE (turbid water flattens contrast), then:
+
+1. features of the previous frame are tracked with pyramidal Lucas-Kanade,
+   seeded with the IMU-predicted rotation when given (fast turns otherwise
+   exceed the search window), and kept only when tracking back lands within
+   `max_forward_backward_px` of the start;
+2. survivors are checked against one essential matrix (RANSAC) on
+   undistorted normalised coordinates, which rejects tracks that slid along
+   edges or locked onto moving particles;
+3. new corners (Shi-Tomasi) fill empty cells of a grid so features stay spread
+   over the image, up to `max_features`.
+
+Features carry stable integer track ids; the output is a `FrameTracks` with
+both distorted pixels (in the frontend image) and undistorted normalised
+coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from postproc.slam.types import FloatArray, FrameTracks, IntArray
+from shared.calibration.cameras import CameraModel
+
+Image = npt.NDArray[np.uint8]
+
+
+@dataclass(kw_only=True)
+class FrontendOptions:
+    """Frontend settings (pixels are frontend-image pixels unless said otherwise).
+
+    width_px: wider images are shrunk to this width (height keeps the aspect); 0 or
+        a larger value keeps the recorded size.
+    clahe: contrast-limited histogram equalisation; clahe_clip_limit, clahe_tiles.
+    max_features: features kept per frame (SVIn2 GoPro: 400).
+    grid_cols / grid_rows: detection grid; each cell gets an equal share.
+    min_distance_px: minimum spacing of features.
+    quality_level: Shi-Tomasi quality relative to the best corner of the cell.
+    klt_window_px / klt_levels: Lucas-Kanade window size and pyramid levels.
+    max_forward_backward_px: forward-backward consistency bound.
+    ransac_threshold_px: epipolar distance bound of the essential-matrix RANSAC.
+    border_px: features closer than this to the image border are dropped.
+    """
+
+    width_px: int = 960
+    clahe: bool = True
+    clahe_clip_limit: float = 2.0
+    clahe_tiles: int = 8
+    max_features: int = 400
+    grid_cols: int = 8
+    grid_rows: int = 5
+    min_distance_px: int = 12
+    quality_level: float = 0.01
+    klt_window_px: int = 15
+    klt_levels: int = 3
+    max_forward_backward_px: float = 1.0
+    ransac_threshold_px: float = 1.0
+    border_px: int = 4
+
+
+def scale_for_width(camera: CameraModel, width_px: int) -> float:
+    """Resize factor from the recorded image to the frontend width.
+
+    Images are only ever shrunk: 1.0 for width 0 or a width at or above the recorded one.
+    """
+    if width_px <= 0 or width_px >= camera.width:
+        return 1.0
+    return width_px / camera.width
+
+
+class KltFrontend:
+    """Stateful tracker: call `track` once per image in time order.
+
+    camera: the model of the recorded (full-resolution) image; the frontend
+    works with `camera.scaled(...)` at `width_px`.
+    """
+
+    def __init__(self, options: FrontendOptions, camera: CameraModel) -> None:
+        self.options = options
+        self.scale = scale_for_width(camera, options.width_px)
+        self.camera = camera.scaled(self.scale) if self.scale != 1.0 else camera
+        self.image_size = (self.camera.width, self.camera.height)
+        self._clahe = (
+            cv2.createCLAHE(
+                clipLimit=options.clahe_clip_limit,
+                tileGridSize=(options.clahe_tiles, options.clahe_tiles),
+            )
+            if options.clahe
+            else None
+        )
+        self._previous: Image | None = None
+        self._points = np.zeros((0, 2), dtype=np.float32)
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._next_id = 0
+        self.lost_tracks = 0
+        self.rejected_tracks = 0
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length of the frontend image (pixels), mean of fx and fy."""
+        K = self.camera.intrinsic_matrix
+        return float(0.5 * (K[0, 0] + K[1, 1]))
+
+    @property
+    def last_image(self) -> Image | None:
+        """The prepared (grey, resized, equalised) image of the last `track` call."""
+        return self._previous
+
+    def prepare(self, image: Image) -> Image:
+        """Grey, resized and equalised image the tracker works on."""
+        if image.ndim == 3:
+            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+            image = cv2.cvtColor(image, code)
+        # 16-bit PNGs (some dataset tools write them): keep the high byte.
+        grey = (image >> 8).astype(np.uint8) if image.dtype == np.uint16 else image
+        if grey.shape[1] != self.camera.width or grey.shape[0] != self.camera.height:
+            grey = cv2.resize(
+                grey, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA
+            )
+        if self._clahe is not None:
+            grey = self._clahe.apply(grey)
+        return grey
+
+    def track(
+        self, stamp_ns: int, image: Image, *, cam_rotation_now_from_prev: FloatArray | None = None
+    ) -> FrameTracks:
+        """Track into `image` (recorded size, grey or BGR); returns the surviving features.
+
+        `cam_rotation_now_from_prev` (3, 3), the rotation `R_Cnow_Cprev` predicted by
+        the gyro, seeds the optical flow.
+        """
+        grey = self.prepare(image)
+        if self._previous is not None and len(self._points):
+            self._track_from_previous(self._previous, grey, cam_rotation_now_from_prev)
+        self._replenish(grey)
+        self._previous = grey
+        pixels = self._points.astype(np.float64)
+        xy = self.camera.unproject(pixels)[:, :2] if len(pixels) else np.zeros((0, 2))
+        ok = np.all(np.isfinite(xy), axis=1)
+        return FrameTracks(
+            stamp_ns=int(stamp_ns),
+            track_ids=self._ids[ok].copy(),
+            xy_normalised=xy[ok],
+            pixels=pixels[ok],
+            image_size=self.image_size,
+        )
+
+    # ------------------------------------------------------------------------- internals
+
+    def _predict(self, rotation: FloatArray | None) -> npt.NDArray[np.float32]:
+        if rotation is None:
+            return self._points.copy()
+        rays = self.camera.unproject(self._points.astype(np.float64))
+        predicted = self.camera.project(rays @ np.asarray(rotation).T)
+        bad = ~np.all(np.isfinite(predicted), axis=1)
+        predicted[bad] = self._points[bad]
+        return predicted.astype(np.float32)
+
+    def _track_from_previous(
+        self, previous: Image, current: Image, rotation: FloatArray | None
+    ) -> None:
+        o = self.options
+        window = (o.klt_window_px, o.klt_window_px)
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        start = self._points.reshape(-1, 1, 2)
+        guess = self._predict(rotation).reshape(-1, 1, 2)
+        forward, status, _ = cv2.calcOpticalFlowPyrLK(
+            previous,
+            current,
+            start,
+            guess.copy(),
+            winSize=window,
+            maxLevel=o.klt_levels,
+            criteria=criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        backward, status_back, _ = cv2.calcOpticalFlowPyrLK(
+            current,
+            previous,
+            forward,
+            start.copy(),
+            winSize=window,
+            maxLevel=o.klt_levels,
+            criteria=criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        forward = forward.reshape(-1, 2)
+        fb_error = np.linalg.norm(backward.reshape(-1, 2) - self._points, axis=1)
+        h, w = current.shape[:2]
+        b = o.border_px
+        keep = (
+            (status.ravel() == 1)
+            & (status_back.ravel() == 1)
+            & (fb_error <= o.max_forward_backward_px)
+            & (forward[:, 0] >= b)
+            & (forward[:, 0] <= w - 1 - b)
+            & (forward[:, 1] >= b)
+            & (forward[:, 1] <= h - 1 - b)
+        )
+        self.lost_tracks += int((~keep).sum())
+        previous = self._points[keep]
+        current = forward[keep]
+        ids = self._ids[keep]
+        inliers = self._epipolar_inliers(previous, current)
+        self.rejected_tracks += int((~inliers).sum())
+        self._points = current[inliers].astype(np.float32)
+        self._ids = ids[inliers]
+
+    def _epipolar_inliers(
+        self, previous: npt.NDArray[np.float32], current: npt.NDArray[np.float32]
+    ) -> npt.NDArray[np.bool_]:
+        n = len(previous)
+        if n < 8:
+            return np.ones(n, dtype=bool)
+        a = self.camera.unproject(previous.astype(np.float64))[:, :2]
+        b = self.camera.unproject(current.astype(np.float64))[:, :2]
+        finite = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
+        if finite.sum() < 8:
+            return finite
+        # Hardly any motion: the essential matrix is undefined; keep the KLT survivors.
+        if np.median(np.linalg.norm(current - previous, axis=1)) < 0.5:
+            return finite
+        _, mask = cv2.findEssentialMat(
+            a[finite],
+            b[finite],
+            np.eye(3),
+            method=cv2.RANSAC,
+            prob=0.999,
+            threshold=self.options.ransac_threshold_px / self.focal_px,
+        )
+        inliers = np.zeros(n, dtype=bool)
+        if mask is None:
+            inliers[finite] = True
+        else:
+            inliers[np.flatnonzero(finite)] = mask.ravel().astype(bool)
+        return inliers
+
+    def _replenish(self, grey: Image) -> None:
+        o = self.options
+        if len(self._points) >= o.max_features:
+            return
+        h, w = grey.shape
+        mask = np.full((h, w), 255, dtype=np.uint8)
+        b = o.border_px
+        mask[:b, :] = 0
+        mask[h - b :, :] = 0
+        mask[:, :b] = 0
+        mask[:, w - b :] = 0
+        for x, y in self._points:
+            cv2.circle(mask, (round(float(x)), round(float(y))), o.min_distance_px, 0, -1)
+        quota = max(o.max_features // (o.grid_cols * o.grid_rows), 1)
+        xs = np.linspace(0, w, o.grid_cols + 1).astype(int)
+        ys = np.linspace(0, h, o.grid_rows + 1).astype(int)
+        cell_of = np.zeros(len(self._points), dtype=np.int64)
+        if len(self._points):
+            cx = np.clip(
+                np.searchsorted(xs, self._points[:, 0], side="right") - 1, 0, o.grid_cols - 1
+            )
+            cy = np.clip(
+                np.searchsorted(ys, self._points[:, 1], side="right") - 1, 0, o.grid_rows - 1
+            )
+            cell_of = cy * o.grid_cols + cx
+        counts = np.bincount(cell_of, minlength=o.grid_cols * o.grid_rows)
+        new_points = []
+        for cell in np.argsort(counts, kind="stable"):
+            r, c = divmod(int(cell), o.grid_cols)
+            want = quota - int(counts[cell])
+            if want > 0:
+                x0, x1, y0, y1 = xs[c], xs[c + 1], ys[r], ys[r + 1]
+                corners = cv2.goodFeaturesToTrack(
+                    grey[y0:y1, x0:x1],
+                    maxCorners=want,
+                    qualityLevel=o.quality_level,
+                    minDistance=o.min_distance_px,
+                    mask=mask[y0:y1, x0:x1],
+                )
+                if corners is not None:
+                    new_points.append(corners.reshape(-1, 2) + np.array([x0, y0], np.float32))
+        if not new_points:
+            return
+        # Emptier cells come first in the list; cut at the overall budget.
+        added = np.vstack(new_points).astype(np.float32)[: o.max_features - len(self._points)]
+        self._points = np.vstack([self._points, added]).astype(np.float32)
+        ids = np.arange(self._next_id, self._next_id + len(added), dtype=np.int64)
+        self._next_id += len(added)
+        self._ids = np.concatenate([self._ids, ids])
+
+
+def track_ids_in_both(a: FrameTracks, b: FrameTracks) -> tuple[IntArray, IntArray]:
+    """Indices into a and b of the tracks the two frames share (same id)."""
+    _, ia, ib = np.intersect1d(a.track_ids, b.track_ids, return_indices=True)
+    return ia.astype(np.int64), ib.astype(np.int64)

@@ -1,0 +1,259 @@
+"""Where SLAM gets its images and IMU samples: EuRoC folders and session folders.
+
+Both readers satisfy the small `SlamInput` protocol; `open_input` picks one
+from what the folder holds (a registry, not an if-chain at the call site).
+
+- EuRoC ASL folder (`mav0/cam0`, `mav0/imu0`, optional sensor.yaml files):
+  images are read from disk one at a time.
+- Session folder (field output): `recording.mcap` or `recording_NNN.mcap`,
+  with `calib/camchain.yaml` and `calib/imu.yaml`. Images come from
+  `/cam0/image` (JPEG/PNG stills) or `/cam0/video` (H.264/H.265 packets,
+  decoded with PyAV), the IMU from `/imu0`. Stamps are `header.stamp` (the
+  sensor clock), as conventions.md asks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from postproc.slam.types import ImuSamples
+from shared.calibration.kalibr import CameraCalibration, ImuNoise, read_camchain, read_imu_yaml
+from shared.errors import InputError
+
+Image = npt.NDArray[np.uint8]
+
+
+@dataclass
+class Frame:
+    """One recorded image: camera-clock stamp (int64 ns), pixels (grey or BGR) and,
+    when the image exists as a file, its encoded bytes (kept as recorded for keyframes)."""
+
+    stamp_ns: int
+    image: Image
+    encoded_png: bytes | None = None
+
+
+class SlamInput(Protocol):
+    """A recording SLAM can run on."""
+
+    @property
+    def name(self) -> str:
+        """What to call it in messages (the folder name)."""
+        ...
+
+    @property
+    def calibration(self) -> CameraCalibration | None:
+        """Camera model, `cam_from_imu` and time shift, when the input carries them."""
+        ...
+
+    @property
+    def imu_noise(self) -> ImuNoise | None:
+        """IMU noise densities, when the input carries them."""
+        ...
+
+    @property
+    def imu(self) -> ImuSamples:
+        """All IMU samples (IMU clock)."""
+        ...
+
+    @property
+    def frame_count(self) -> int:
+        """Number of images (for the progress bar)."""
+        ...
+
+    def frames(self) -> Iterator[Frame]:
+        """Images in time order."""
+        ...
+
+
+class EurocInput:
+    """An EuRoC ASL folder (the one holding `mav0`, or `mav0` itself)."""
+
+    def __init__(self, folder: Path) -> None:
+        from shared.formats.euroc import read_euroc
+
+        self.folder = folder
+        self._data = read_euroc(folder)
+        if len(self._data.imu_stamps_ns) < 2:
+            raise InputError(f"{folder}: fewer than 2 IMU samples in mav0/imu0/data.csv")
+
+    @property
+    def name(self) -> str:
+        return self.folder.name
+
+    @property
+    def calibration(self) -> CameraCalibration | None:
+        return self._data.camera
+
+    @property
+    def imu_noise(self) -> ImuNoise | None:
+        return self._data.imu_noise
+
+    @property
+    def imu(self) -> ImuSamples:
+        d = self._data
+        return ImuSamples(d.imu_stamps_ns, d.gyro_rad_s, d.accel_m_s2)
+
+    @property
+    def frame_count(self) -> int:
+        return len(self._data.image_stamps_ns)
+
+    def frames(self) -> Iterator[Frame]:
+        for stamp, path in zip(self._data.image_stamps_ns, self._data.image_paths, strict=True):
+            try:
+                encoded = path.read_bytes()
+            except OSError as error:
+                raise InputError(f"{path}: cannot read image ({error})") from None
+            image = cv2.imdecode(np.frombuffer(encoded, np.uint8), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise InputError(f"{path}: not a readable image (expected PNG or JPEG)")
+            png = encoded if path.suffix.lower() == ".png" else None
+            yield Frame(int(stamp), image, png)
+
+
+class SessionInput:
+    """A field session folder: MCAP recording(s) plus calib/."""
+
+    IMAGE_TOPIC = "/cam0/image"
+    VIDEO_TOPIC = "/cam0/video"
+    IMU_TOPIC = "/imu0"
+
+    def __init__(self, folder: Path) -> None:
+        from shared.archive import ArchiveReader
+
+        self.folder = folder
+        self.recordings = sorted(folder.glob("recording*.mcap"))
+        if not self.recordings:
+            raise InputError(f"{folder}: no recording.mcap (expected a session folder)")
+        stamps, gyro, accel = [], [], []
+        self._image_topic: str | None = None
+        self._count = 0
+        for path in self.recordings:
+            with ArchiveReader(path) as reader:
+                topics = reader.topics()
+                if self.IMU_TOPIC in topics:
+                    series = reader.read_imu(self.IMU_TOPIC)
+                    stamps.append(series.stamps_ns)
+                    gyro.append(series.gyro_rad_s)
+                    accel.append(series.accel_m_s2)
+                for topic in (self.IMAGE_TOPIC, self.VIDEO_TOPIC):
+                    if topic in topics:
+                        self._image_topic = self._image_topic or topic
+                        if topic == self._image_topic:
+                            self._count += topics[topic].message_count
+        if not stamps or sum(len(s) for s in stamps) < 2:
+            raise InputError(f"{folder}: no IMU samples on {self.IMU_TOPIC} in the recording")
+        if self._image_topic is None:
+            raise InputError(
+                f"{folder}: no images (expected {self.IMAGE_TOPIC} or {self.VIDEO_TOPIC})"
+            )
+        all_stamps = np.concatenate(stamps)
+        order = np.argsort(all_stamps, kind="stable")
+        all_stamps = all_stamps[order]
+        keep = np.concatenate([[True], np.diff(all_stamps) > 0])  # duplicate stamps: keep one
+        self._imu = ImuSamples(
+            all_stamps[keep], np.concatenate(gyro)[order][keep], np.concatenate(accel)[order][keep]
+        )
+        camchain = folder / "calib" / "camchain.yaml"
+        imu_yaml = folder / "calib" / "imu.yaml"
+        self._calibration = read_camchain(camchain)[0] if camchain.is_file() else None
+        self._noise = read_imu_yaml(imu_yaml) if imu_yaml.is_file() else None
+
+    @property
+    def name(self) -> str:
+        return self.folder.name
+
+    @property
+    def calibration(self) -> CameraCalibration | None:
+        return self._calibration
+
+    @property
+    def imu_noise(self) -> ImuNoise | None:
+        return self._noise
+
+    @property
+    def imu(self) -> ImuSamples:
+        return self._imu
+
+    @property
+    def frame_count(self) -> int:
+        return self._count
+
+    def frames(self) -> Iterator[Frame]:
+        from shared.archive import ArchiveReader
+        from shared.archive.messages import CompressedImage, CompressedVideo
+
+        decoder = _VideoDecoder()
+        topic = str(self._image_topic)  # set in __init__ (or it raised)
+        for path in self.recordings:
+            with ArchiveReader(path) as reader:
+                for _, _, message in reader.messages(topics=[topic]):
+                    if isinstance(message, CompressedImage):
+                        image = cv2.imdecode(
+                            np.frombuffer(message.data, np.uint8), cv2.IMREAD_UNCHANGED
+                        )
+                        if image is None:
+                            raise InputError(
+                                f"{path}: {self._image_topic} at {message.stamp_ns} ns: "
+                                f"cannot decode a {message.format!r} image"
+                            )
+                        png = message.data if message.format.lower() == "png" else None
+                        yield Frame(message.stamp_ns, image, png)
+                    elif isinstance(message, CompressedVideo):
+                        for image in decoder.decode(message.format, message.data):
+                            yield Frame(message.stamp_ns, image)
+
+
+class _VideoDecoder:
+    """H.264/H.265 Annex B access units to BGR images (PyAV), one codec per stream."""
+
+    def __init__(self) -> None:
+        self._codec: Any = None
+
+    def decode(self, fmt: str, data: bytes) -> Iterator[Image]:
+        import av
+
+        if self._codec is None:
+            names = {"h264": "h264", "h265": "hevc", "hevc": "hevc"}
+            if fmt.lower() not in names:
+                raise InputError(f"unsupported video format {fmt!r} (expected h264 or h265)")
+            self._codec = av.CodecContext.create(names[fmt.lower()], "r")
+        for frame in self._codec.decode(av.Packet(data)):
+            yield frame.to_ndarray(format="bgr24")
+
+
+def _is_euroc(folder: Path) -> bool:
+    mav = folder / "mav0" if (folder / "mav0").is_dir() else folder
+    return (mav / "cam0").is_dir() and (mav / "imu0").is_dir()
+
+
+def _is_session(folder: Path) -> bool:
+    return any(folder.glob("recording*.mcap"))
+
+
+# Name -> (detector, reader); tried in order.
+INPUT_KINDS: dict[str, tuple[Callable[[Path], bool], Callable[[Path], SlamInput]]] = {
+    "euroc": (_is_euroc, EurocInput),
+    "session": (_is_session, SessionInput),
+}
+
+
+def open_input(path: Path | str) -> SlamInput:
+    """The reader for `path` (EuRoC folder or session folder); InputError otherwise."""
+    folder = Path(path)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: no such folder (expected an EuRoC or session folder)")
+    for detect, reader in INPUT_KINDS.values():
+        if detect(folder):
+            return reader(folder)
+    raise InputError(
+        f"{folder}: neither an EuRoC folder (mav0/cam0, mav0/imu0) nor a session folder "
+        "(recording.mcap)"
+    )

@@ -1,0 +1,285 @@
+"""The SLAM stage: a recording in, a SLAM result folder out (docs/conventions.md).
+
+`run(options, input_path, out_dir)` tracks every image (frontend), picks
+keyframes, estimates the visual-inertial trajectory (backend) and writes:
+
+    trajectory.tum      body (IMU) poses T_S_B at every image, camera-clock stamps
+    keyframes.tum       camera poses T_S_C of the keyframes
+    keyframes/<ns>.png  keyframe images, distorted and at the resolution recorded
+    calib/camchain.yaml the camera model used (Kalibr), calib/imu.yaml the IMU noise
+    map.ply             sparse landmarks in S (binary little-endian PLY, float32 xyz)
+    stats.json          frames, keyframes, run time, real-time factor, loop closures,
+                        tracking failures and estimator counters
+
+The session frame S: z up (gravity (0, 0, -9.81)), origin at the body (IMU)
+position of the first keyframe, yaw such that the first keyframe's body x
+axis, projected on the horizontal, points along +x. So `trajectory.tum`
+starts at (0, 0, 0) and its z is height above the first keyframe.
+
+Time stamps in both TUM files are the image stamps on the camera clock, as
+recorded; the estimator runs on the IMU clock (t_imu = t_cam + Kalibr's
+timeshift_cam_imu).
+
+The folder is written under a temporary name and renamed when complete; a
+complete result already on disk is kept (returned as is) unless overwrite.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from postproc.slam.estimator import EstimatorOptions, SlamEstimator, SlamResult
+from postproc.slam.frontend import FrontendOptions, KltFrontend
+from postproc.slam.initialization import preintegrate
+from postproc.slam.inputs import SlamInput, open_input
+from postproc.slam.loop_closure import Descriptors, orb_descriptors
+from postproc.slam.types import FloatArray, FrameTracks, IntArray
+from postproc.slam.visual_only import VisualOnlyEstimator
+from shared.calibration.kalibr import (
+    CameraCalibration,
+    ImuNoise,
+    read_camchain,
+    read_imu_yaml,
+    write_camchain,
+    write_imu_yaml,
+)
+from shared.errors import InputError, StageError
+from shared.formats.tum import write_tum
+from shared.fsutil import atomic_path
+from shared.progress import progress
+from shared.trajectory import Trajectory
+
+LOG = logging.getLogger(__name__)
+
+RESULT_FILES = ("trajectory.tum", "keyframes.tum", "map.ply", "stats.json")
+
+
+@dataclass(kw_only=True)
+class SlamOptions:
+    """Everything the SLAM stage can be told.
+
+    frontend / estimator: see FrontendOptions, EstimatorOptions (keyframe rule and
+        backend inside).
+    use_imu: False runs the visual-only baseline (postproc.slam.visual_only): arbitrary
+        scale, S = first keyframe's body frame (not gravity-aligned), no loop closure.
+    max_frames: stop after this many images (None: all); for quick looks and tests.
+    min_tracks_ok: a frame with fewer tracked features counts as a tracking failure.
+    """
+
+    frontend: FrontendOptions = field(default_factory=FrontendOptions)
+    estimator: EstimatorOptions = field(default_factory=EstimatorOptions)
+    use_imu: bool = True
+    max_frames: int | None = None
+    min_tracks_ok: int = 30
+
+
+def _resolve_calibration(
+    source: SlamInput, camchain: Path | None, imu_yaml: Path | None, *, need_imu: bool
+) -> tuple[CameraCalibration, ImuNoise | None]:
+    if camchain is not None:
+        calibration = read_camchain(camchain)[0]
+    elif source.calibration is not None:
+        calibration = source.calibration
+    else:
+        raise InputError(
+            f"{source.name}: no camera calibration in the input (pass --calib camchain.yaml)"
+        )
+    noise: ImuNoise | None
+    if imu_yaml is not None:
+        noise = read_imu_yaml(imu_yaml)
+    elif source.imu_noise is not None or not need_imu:
+        noise = source.imu_noise
+    else:
+        raise InputError(f"{source.name}: no IMU noise model in the input (pass --imu imu.yaml)")
+    return calibration, noise
+
+
+def ply_bytes(points: FloatArray) -> bytes:
+    """Binary little-endian PLY of (N, 3) points (float32 x, y, z)."""
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        "comment wreckmap SLAM landmarks, session frame S, metres\n"
+        f"element vertex {len(points)}\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    return header.encode("ascii") + np.asarray(points, dtype="<f4").reshape(-1, 3).tobytes()
+
+
+def _gyro_rotation(
+    estimator: SlamEstimator, calibration: CameraCalibration, t0_ns: int, t1_ns: int
+) -> FloatArray | None:
+    """`R_Cnow_Cprev` between two images from the gyro (None when the IMU does not cover)."""
+    imu = estimator.imu
+    shift = round(calibration.timeshift_cam_imu_s * 1e9)
+    a, b = t0_ns + shift, t1_ns + shift
+    if a < imu.stamps_ns[0] or b > imu.stamps_ns[-1] or b <= a:
+        return None
+    bias = (
+        np.asarray(estimator.backend.bias_of(estimator.backend.num_keyframes - 1).gyroscope())
+        if estimator.backend.num_keyframes
+        else np.zeros(3)
+    )
+    R_prev_now = preintegrate(imu, a, [b], bias)[0].delta_rotation
+    R_B_C = calibration.imu_from_cam[:3, :3]
+    rotation: FloatArray = R_B_C.T @ R_prev_now.T @ R_B_C
+    return rotation
+
+
+def run(
+    options: SlamOptions,
+    input_path: Path | str,
+    out_dir: Path | str,
+    *,
+    camchain: Path | str | None = None,
+    imu_yaml: Path | str | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Run SLAM on an EuRoC or session folder; write the SLAM result folder `out_dir`.
+
+    `camchain` / `imu_yaml` replace the calibration the input carries.
+    Returns `out_dir`. A complete result already there is returned untouched
+    unless `overwrite`. Raises InputError for unreadable inputs or missing
+    calibration, StageError when no trajectory can be estimated.
+    """
+    out = Path(out_dir)
+    if not overwrite and all((out / name).is_file() for name in RESULT_FILES):
+        LOG.info("%s: SLAM result already there (pass overwrite to redo it)", out)
+        return out
+    source = open_input(Path(input_path))
+    calibration, noise = _resolve_calibration(
+        source,
+        Path(camchain) if camchain is not None else None,
+        Path(imu_yaml) if imu_yaml is not None else None,
+        need_imu=options.use_imu,
+    )
+    frontend = KltFrontend(options.frontend, calibration.camera)
+    estimator_options = dataclasses.replace(
+        options.estimator, timeshift_cam_imu_s=calibration.timeshift_cam_imu_s
+    )
+    estimator: SlamEstimator | VisualOnlyEstimator
+    if options.use_imu:
+        assert noise is not None  # _resolve_calibration raised otherwise
+        estimator = SlamEstimator(
+            estimator_options,
+            focal_px=frontend.focal_px,
+            imu_from_cam=calibration.imu_from_cam,
+            imu=source.imu,
+            imu_noise=noise,
+        )
+    else:
+        estimator = VisualOnlyEstimator(
+            estimator_options, focal_px=frontend.focal_px, imu_from_cam=calibration.imu_from_cam
+        )
+    started = time.monotonic()
+    with atomic_path(out, overwrite=overwrite) as tmp:
+        keyframe_dir = tmp / "keyframes"
+        keyframe_dir.mkdir(parents=True)
+        total = source.frame_count
+        if options.max_frames is not None:
+            total = min(total, options.max_frames)
+        tracking_failures = 0
+        previous_stamp: int | None = None
+        first_stamp: int | None = None
+        last_stamp = 0
+        for count, frame in enumerate(
+            progress(source.frames(), total=total, desc="slam", unit="frame")
+        ):
+            if options.max_frames is not None and count >= options.max_frames:
+                break
+            rotation = (
+                _gyro_rotation(estimator, calibration, previous_stamp, frame.stamp_ns)
+                if previous_stamp is not None and isinstance(estimator, SlamEstimator)
+                else None
+            )
+            tracks = frontend.track(
+                frame.stamp_ns, frame.image, cam_rotation_now_from_prev=rotation
+            )
+            if len(tracks.track_ids) < options.min_tracks_ok:
+                tracking_failures += 1
+            decision = estimator.process(tracks, functools.partial(_describe, frontend, tracks))
+            if decision.is_keyframe:
+                _save_keyframe(keyframe_dir, frame.stamp_ns, frame.image, frame.encoded_png)
+            previous_stamp = frame.stamp_ns
+            first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
+            last_stamp = frame.stamp_ns
+        result = estimator.finish()
+        run_time_s = time.monotonic() - started
+        duration_s = (last_stamp - (first_stamp or last_stamp)) * 1e-9
+        _write_result(
+            tmp,
+            result,
+            calibration,
+            noise,
+            stats={
+                "input": source.name,
+                "run_time_s": run_time_s,
+                "sequence_duration_s": duration_s,
+                "real_time_factor": duration_s / run_time_s if run_time_s > 0 else 0.0,
+                "tracking_failures": tracking_failures,
+                "frontend_width_px": frontend.image_size[0],
+                "lost_tracks": frontend.lost_tracks,
+                "rejected_tracks": frontend.rejected_tracks,
+                "options": asdict(options),
+            },
+        )
+        # Only keyframes the estimator kept have images (frames outside the IMU span do not).
+        kept = {f"{s}.png" for s in result.keyframe_stamps_ns.tolist()}
+        for path in keyframe_dir.iterdir():
+            if path.name not in kept:
+                path.unlink()
+    return out
+
+
+def _describe(frontend: KltFrontend, tracks: FrameTracks) -> tuple[IntArray, Descriptors]:
+    """ORB descriptors at the tracked features of the image the frontend just took."""
+    image = frontend.last_image
+    if image is None:
+        raise RuntimeError("describe() before the frontend saw an image")
+    return orb_descriptors(image, tracks.pixels)
+
+
+def _save_keyframe(
+    folder: Path, stamp_ns: int, image: np.ndarray, encoded_png: bytes | None
+) -> None:
+    path = folder / f"{stamp_ns}.png"
+    if encoded_png is not None:
+        path.write_bytes(encoded_png)  # as recorded, byte for byte
+        return
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise StageError(f"cannot encode keyframe {stamp_ns} as PNG")
+    path.write_bytes(data.tobytes())
+
+
+def _write_result(
+    folder: Path,
+    result: SlamResult,
+    calibration: CameraCalibration,
+    noise: ImuNoise | None,
+    *,
+    stats: dict[str, object],
+) -> None:
+    write_tum(
+        folder / "trajectory.tum", Trajectory(result.frame_stamps_ns, result.session_from_body)
+    )
+    write_tum(
+        folder / "keyframes.tum",
+        Trajectory(result.keyframe_stamps_ns, result.keyframe_session_from_cam),
+    )
+    (folder / "calib").mkdir()
+    write_camchain(folder / "calib" / "camchain.yaml", [calibration])
+    if noise is not None:
+        write_imu_yaml(folder / "calib" / "imu.yaml", noise)
+    (folder / "map.ply").write_bytes(ply_bytes(result.landmarks_s))
+    path_m = Trajectory(result.frame_stamps_ns, result.session_from_body).path_length_m()
+    summary = {**stats, **result.stats, "path_length_m": path_m}
+    (folder / "stats.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")

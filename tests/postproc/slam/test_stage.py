@@ -1,0 +1,174 @@
+"""The SLAM stage and `wreckmap-post slam` on a tiny rendered EuRoC folder."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from postproc.slam.frontend import FrontendOptions
+from postproc.slam.inputs import open_input
+from postproc.slam.stage import SlamOptions, ply_bytes, run
+from shared.calibration.kalibr import read_camchain, read_imu_yaml, write_camchain, write_imu_yaml
+from shared.errors import InputError, OutputExistsError, StageError
+from shared.formats.euroc import read_euroc
+from shared.formats.tum import read_tum
+from shared.trajectory import ate
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+def test_cli_writes_the_slam_result_folder(wall_euroc: Path, tmp_path: Path) -> None:
+    out = tmp_path / "slam"
+    env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "postproc.cli",
+            "slam",
+            str(wall_euroc),
+            "--out",
+            str(out),
+            "--width",
+            "0",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == str(out)
+    trajectory = read_tum(out / "trajectory.tum")
+    keyframes = read_tum(out / "keyframes.tum")
+    truth = read_euroc(wall_euroc)
+    assert len(trajectory) == len(truth.image_stamps_ns)
+    np.testing.assert_array_equal(trajectory.stamps_ns, truth.image_stamps_ns)
+    np.testing.assert_allclose(trajectory.positions[0], 0.0, atol=1e-6)
+    # Metric and accurate: measured 3.3 mm over the 3.2 m path.
+    assert truth.groundtruth is not None
+    assert ate(trajectory, truth.groundtruth, align="se3").rmse_m < 0.03
+    # Keyframe images: one per keyframe pose, byte-identical to the recorded PNGs.
+    images = sorted((out / "keyframes").glob("*.png"))
+    assert [int(p.stem) for p in images] == keyframes.stamps_ns.tolist()
+    recorded = {int(p.stem): p for p in truth.image_paths}
+    assert images[1].read_bytes() == recorded[int(images[1].stem)].read_bytes()
+    assert truth.camera is not None
+    camera = read_camchain(out / "calib" / "camchain.yaml")[0]
+    assert camera.camera == truth.camera.camera
+    assert read_imu_yaml(out / "calib" / "imu.yaml") == truth.imu_noise
+    # Keyframe poses are camera poses: T_S_C = T_S_B T_B_C at the keyframe stamps.
+    idx = np.searchsorted(trajectory.stamps_ns, keyframes.stamps_ns)
+    np.testing.assert_allclose(
+        keyframes.poses, trajectory.poses[idx] @ truth.camera.imu_from_cam, atol=1e-6
+    )
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["frames"] == len(trajectory)
+    assert stats["keyframes"] == len(keyframes)
+    assert stats["loop_closures"] == 0
+    assert stats["tracking_failures"] == 0
+    assert stats["real_time_factor"] > 0
+    header, _, body = (out / "map.ply").read_bytes().partition(b"end_header\n")
+    assert f"element vertex {stats['landmarks']}".encode() in header
+    assert len(body) == 12 * stats["landmarks"] > 0
+
+
+def test_existing_result_is_kept_unless_overwrite(wall_euroc: Path, tmp_path: Path) -> None:
+    options = SlamOptions(frontend=FrontendOptions(width_px=0), max_frames=60)
+    out = run(options, wall_euroc, tmp_path / "slam")
+    stats = (out / "stats.json").read_text()
+    assert json.loads(stats)["frames"] == 60
+    # Complete result: returned as is, nothing recomputed.
+    assert run(options, wall_euroc, out) == out
+    assert (out / "stats.json").read_text() == stats
+    # Incomplete folder in the way: refused.
+    (out / "stats.json").unlink()
+    with pytest.raises(OutputExistsError):
+        run(options, wall_euroc, out)
+    run(options, wall_euroc, out, overwrite=True)
+    assert (out / "stats.json").is_file()
+
+
+def test_errors(wall_euroc: Path, tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="no such folder"):
+        run(SlamOptions(), tmp_path / "missing", tmp_path / "out")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="neither an EuRoC folder"):
+        open_input(tmp_path / "empty")
+    assert not (tmp_path / "out").exists()
+
+
+def test_visual_only_baseline_through_the_cli(wall_euroc: Path, tmp_path: Path) -> None:
+    out = tmp_path / "vo"
+    env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "postproc.cli",
+            "slam",
+            str(wall_euroc),
+            "--out",
+            str(out),
+            "--width",
+            "0",
+            "--no-imu",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    trajectory = read_tum(out / "trajectory.tum")
+    truth = read_euroc(wall_euroc).groundtruth
+    assert truth is not None
+    sim3 = ate(trajectory, truth, align="sim3")
+    # Shape right, scale arbitrary (the first baseline is 1): measured 7 mm.
+    assert sim3.rmse_m < 0.05
+    assert abs(sim3.scale - 1.0) > 0.05
+    assert "visual only" in json.loads((out / "stats.json").read_text())["init"]
+
+
+def test_calibration_from_flags(wall_euroc: Path, tmp_path: Path) -> None:
+    # An EuRoC folder without sensor.yaml files: the calibration must come from flags.
+    bare = tmp_path / "bare"
+    for sub in ("cam0", "imu0"):
+        (bare / "mav0" / sub).mkdir(parents=True)
+        shutil.copy(wall_euroc / "mav0" / sub / "data.csv", bare / "mav0" / sub / "data.csv")
+    (bare / "mav0" / "cam0" / "data").symlink_to(wall_euroc / "mav0" / "cam0" / "data")
+    options = SlamOptions(frontend=FrontendOptions(width_px=0), max_frames=60)
+    with pytest.raises(InputError, match="--calib"):
+        run(options, bare, tmp_path / "out")
+    truth = read_euroc(wall_euroc)
+    assert truth.camera is not None and truth.imu_noise is not None
+    camchain = write_camchain(tmp_path / "camchain.yaml", [truth.camera])
+    with pytest.raises(InputError, match="--imu"):
+        run(options, bare, tmp_path / "out", camchain=camchain)
+    imu_yaml = write_imu_yaml(tmp_path / "imu.yaml", truth.imu_noise)
+    out = run(options, bare, tmp_path / "out", camchain=camchain, imu_yaml=imu_yaml)
+    assert read_camchain(out / "calib" / "camchain.yaml")[0].camera == truth.camera.camera
+
+
+def test_too_short_fails_cleanly(wall_euroc: Path, tmp_path: Path) -> None:
+    with pytest.raises(StageError, match="keyframe"):
+        run(SlamOptions(max_frames=1), wall_euroc, tmp_path / "short")
+    assert not (tmp_path / "short").exists()
+
+
+def test_ply_layout() -> None:
+    data = ply_bytes(np.array([[1.0, 2.0, 3.0]]))
+    header, _, body = data.partition(b"end_header\n")
+    assert b"element vertex 1" in header
+    np.testing.assert_array_equal(np.frombuffer(body, "<f4"), [1.0, 2.0, 3.0])
