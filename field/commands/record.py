@@ -122,6 +122,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     preview.add_argument("--key", default="wreckmap/**", help="zenoh key expression to show")
     preview.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="keep trying this many seconds while the recorder is not up yet (default 30)",
+    )
+    preview.add_argument(
         "--zenoh-config", type=Path, help="zenoh JSON5 config (TLS, access control)"
     )
     preview.set_defaults(handler=_preview)
@@ -263,6 +270,7 @@ def _preview(args: argparse.Namespace) -> int:
         http_port=int(port),
         key_expr=args.key,
         zenoh_config_file=str(args.zenoh_config) if args.zenoh_config else None,
+        connect_timeout_s=args.connect_timeout,
     )
     serve(options)
     return 0

@@ -46,13 +46,15 @@ SSE_KEEPALIVE_S = 10.0
 class PreviewServerOptions:
     """connect: the recorder's zenoh endpoints; http_host, http_port: where the page is
     served (loopback by default); key_expr: what to subscribe to; zenoh_config_file: a
-    zenoh JSON5 config (TLS, access control)."""
+    zenoh JSON5 config (TLS, access control); connect_timeout_s: how long to keep trying
+    while the recorder is not up yet (the page is often opened before the recording starts)."""
 
     connect: list[str]
     http_host: str = "127.0.0.1"
     http_port: int = 8090
     key_expr: str = "wreckmap/**"
     zenoh_config_file: str | None = None
+    connect_timeout_s: float = 30.0
 
 
 class PreviewState:
@@ -226,12 +228,19 @@ class PreviewServer:
             config_file=self.options.zenoh_config_file,
             mode="client",
         )
-        try:
-            self._session = zenoh.open(config)
-        except zenoh.ZError as error:
-            raise DeviceError(
-                f"preview: cannot connect to {', '.join(self.options.connect)} ({error})"
-            ) from None
+        deadline = time.monotonic() + self.options.connect_timeout_s
+        while True:
+            try:
+                self._session = zenoh.open(config)
+                break
+            except zenoh.ZError as error:
+                if time.monotonic() >= deadline:
+                    raise DeviceError(
+                        f"preview: cannot connect to {', '.join(self.options.connect)} "
+                        f"after {self.options.connect_timeout_s:g} s ({error})"
+                    ) from None
+                log.info("preview: waiting for the recorder at %s", self.options.connect)
+                time.sleep(0.5)
 
         def on_sample(sample: Any) -> None:
             attachment = sample.attachment.to_bytes() if sample.attachment is not None else None

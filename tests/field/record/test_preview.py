@@ -108,7 +108,9 @@ def test_connection_errors_are_device_errors(tools: Any, tmp_path: Path) -> None
     finally:
         first.close()
     nobody = PreviewServer(
-        PreviewServerOptions(connect=[f"tcp/127.0.0.1:{tools.free_port()}"], http_port=0)
+        PreviewServerOptions(
+            connect=[f"tcp/127.0.0.1:{tools.free_port()}"], http_port=0, connect_timeout_s=1.0
+        )
     )
     try:
         with pytest.raises(DeviceError, match="cannot connect"):
@@ -120,4 +122,8 @@ def test_connection_errors_are_device_errors(tools: Any, tmp_path: Path) -> None
         busy.listen()
         taken = busy.getsockname()[1]
         with pytest.raises(DeviceError, match="cannot serve on"):
-            serve(PreviewServerOptions(connect=["tcp/127.0.0.1:1"], http_port=taken))
+            serve(
+                PreviewServerOptions(
+                    connect=["tcp/127.0.0.1:1"], http_port=taken, connect_timeout_s=0.5
+                )
+            )
