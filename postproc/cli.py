@@ -20,6 +20,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "postproc.commands.slam",
     "postproc.commands.depth",
     "postproc.commands.merge",
+    "postproc.commands.dense",
 )
 
 

@@ -1,0 +1,221 @@
+"""Dense reconstruction accuracy on the simulated wreck, against its truth mesh.
+
+    .venv/bin/python bench/bench_dense.py [--duration 30] [--width 640 --height 360]
+        [--keyframe-step 0.25] [--max-image-size 960] [--backend auto] [--keep DIR]
+
+Simulates session 0 of the survey (`field.sim.survey`: diver route along the starboard
+hull, underwater image model with noise), picks keyframes every `--keyframe-step` metres
+or 10 degrees on the true trajectory, writes an SfM folder with the TRUE poses (so the
+figures measure the dense stage alone, not SfM drift) and sparse points, runs
+`postproc.dense.stage.run`, and prints ETH3D-style accuracy and completeness at 2, 5 and
+10 cm for the fused points and the mesh. Completeness counts only truth-surface samples
+seen by three or more keyframes (projection inside the undistorted image and the true
+depth agrees); a second row counts only those seen by three keyframes from within
+`--near-range` metres (what the water lets a camera resolve). Goal: accuracy >= 90 % and
+completeness >= 70 % at 5 cm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from field.sim.mesh import scene_mesh
+from field.sim.render import Renderer
+from field.sim.survey import SurveyOptions, SurveySimulator
+from postproc.dense.colmap_io import read_pinhole_views, write_known_pose_model
+from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, visibility_counts
+from postproc.dense.ply import read_ply
+from postproc.dense.stage import DenseOptions, run
+from shared.calibration.cameras import PinholeRadtan
+
+
+def pick_keyframes(poses: np.ndarray, step_m: float, step_deg: float = 10.0) -> list[int]:
+    """Indices of frames where the camera moved `step_m` or turned `step_deg` since the last."""
+    chosen = [0]
+    for i in range(1, len(poses)):
+        last = poses[chosen[-1]]
+        moved = np.linalg.norm(poses[i][:3, 3] - last[:3, 3])
+        cos = (np.trace(last[:3, :3].T @ poses[i][:3, :3]) - 1.0) / 2.0
+        turned = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        if moved >= step_m or turned >= step_deg:
+            chosen.append(i)
+    return chosen
+
+
+def sparse_points(
+    camera: PinholeRadtan, poses: list[np.ndarray], depths: list[np.ndarray], step_px: int = 24
+) -> tuple[np.ndarray, list[list[tuple[int, float, float]]]]:
+    """A pixel grid of each keyframe back-projected at its true depth, observed in every
+    keyframe where the true depth confirms it is visible (what SfM would triangulate)."""
+    points = []
+    for pose, depth in zip(poses, depths, strict=True):
+        vv, uu = np.mgrid[4 : camera.height - 4 : step_px, 4 : camera.width - 4 : step_px]
+        z = depth[vv, uu]
+        ok = np.isfinite(z)
+        rays = camera.unproject(np.column_stack((uu[ok], vv[ok])).astype(float))
+        cam_points = rays / rays[:, 2:3] * z[ok, None]
+        points.append(cam_points @ pose[:3, :3].T + pose[:3, 3])
+    all_points = np.concatenate(points)
+    observations = []
+    for pose, depth in zip(poses, depths, strict=True):
+        cam_from_world = np.linalg.inv(pose)
+        pc = all_points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        idx = np.flatnonzero(pc[:, 2] > 0.1)
+        uv = camera.project(pc[idx])
+        inside = (
+            (uv[:, 0] >= 0)
+            & (uv[:, 0] < camera.width - 1)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < camera.height - 1)
+        )
+        idx, uv = idx[inside], uv[inside]
+        true_z = depth[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)]
+        seen = np.isfinite(true_z) & (np.abs(true_z - pc[idx, 2]) < 0.01 * pc[idx, 2])
+        observations.append(
+            [(int(p), float(u), float(v)) for p, (u, v) in zip(idx[seen], uv[seen], strict=True)]
+        )
+    return all_points, observations
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--duration", type=float, default=30.0, help="filmed seconds")
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=360)
+    parser.add_argument("--keyframe-step", type=float, default=0.25, metavar="METRES")
+    parser.add_argument("--max-image-size", type=int, default=960)
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "patchmatch"))
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--near-range", type=float, default=4.0, metavar="METRES",
+        help="second completeness row: seen by 3 keyframes within this range",
+    )  # fmt: skip
+    parser.add_argument("--keep", type=Path, help="work folder to keep (default: temporary)")
+    args = parser.parse_args()
+
+    sim = SurveySimulator(
+        SurveyOptions(sessions=1, duration_s=args.duration, width=args.width,
+                      height=args.height, seed=args.seed, video=False)
+    )  # fmt: skip
+    camera = sim.camera
+    stamps = sim.sessions[0].frame_stamps_cam_ns
+    all_poses = sim.world_from_cam(0, stamps)
+    keys = pick_keyframes(all_poses, args.keyframe_step)
+    work = args.keep or Path(tempfile.mkdtemp(prefix="bench_dense."))
+    sfm_dir, out_dir = work / "sfm", work / "dense"
+    print(f"work folder: {work}")
+
+    start = time.perf_counter()
+    _ = sim.scene
+    poses, depths, names = [], [], []
+    (sfm_dir / "images").mkdir(parents=True, exist_ok=True)
+    for i in keys:
+        frame = sim.render_frame(0, int(stamps[i]), frame_index=int(i))
+        name = f"{int(stamps[i])}.png"
+        cv2.imwrite(str(sfm_dir / "images" / name), frame.image_rgb[..., ::-1])
+        poses.append(all_poses[i])
+        depths.append(frame.depth_m)
+        names.append(name)
+    points, observations = sparse_points(camera, poses, depths)
+    if not (sfm_dir / "sparse").exists():
+        write_known_pose_model(
+            sfm_dir / "sparse", camera_model="OPENCV",
+            camera_params=[camera.fx, camera.fy, camera.cx, camera.cy, camera.k1, camera.k2,
+                           camera.p1, camera.p2],
+            size=(camera.width, camera.height), image_names=names,
+            cams_from_world=[np.linalg.inv(p) for p in poses], points_m=points,
+            observations=observations,
+        )  # fmt: skip
+    render_s = time.perf_counter() - start
+    print(f"{len(keys)} keyframes of {len(stamps)} frames ({args.width}x{args.height}), "
+          f"{len(points)} sparse points; rendered in {render_s:.1f} s")  # fmt: skip
+
+    start = time.perf_counter()
+    options = DenseOptions(max_image_size_px=args.max_image_size, backend=args.backend)
+    run(options, sfm_dir, out_dir)
+    dense_s = time.perf_counter() - start
+    report = json.loads((out_dir / "dense.json").read_text())
+
+    # Truth: the scene mesh; completeness samples seen by >= 3 keyframes in the undistorted
+    # cameras (true depth rendered through the workspace's pinhole camera).
+    start = time.perf_counter()
+    truth = scene_mesh(sim.scene)
+    views = read_pinhole_views(out_dir / "workspace" / "sparse")
+    by_name = {v.name: v for v in views}
+    K = views[0].K
+    pinhole = PinholeRadtan(
+        width=views[0].width, height=views[0].height, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2],
+        cy=K[1, 2], k1=0.0, k2=0.0, p1=0.0, p2=0.0,
+    )  # fmt: skip
+    renderer = Renderer(sim.scene, pinhole, sim.options.water)
+    centres = np.array([p[:3, 3] for p in poses])
+    v, t = truth.vertices, truth.triangles
+    tri_centres = v[t].mean(axis=1)
+    reach = 8.0  # m: far beyond what the water lets the cameras resolve
+    near = np.min(np.linalg.norm(tri_centres[:, None, :] - centres[None, ::5, :], axis=2), axis=1)
+    samples, _ = sample_surface(v, t[near < reach + 1.0], 0.02, seed=1)
+    true_depths = [renderer.render(p).depth_m for p in poses]
+    counts = visibility_counts(
+        samples, [by_name[n].K for n in names], [by_name[n].cam_from_world for n in names],
+        true_depths,
+    )  # fmt: skip
+    seen = samples[counts >= 3]
+    counts_near = visibility_counts(
+        seen, [by_name[n].K for n in names], [by_name[n].cam_from_world for n in names],
+        true_depths, max_range_m=args.near_range,
+    )  # fmt: skip
+    seen_near = seen[counts_near >= 3]
+    fused = read_ply(out_dir / "fused.ply")
+    thresholds = (0.02, 0.05, 0.10)
+    rows = [("fused points", evaluate(fused.vertices, v, t, seen, thresholds_m=thresholds))]
+    near_label = f"fused, seen <= {args.near_range:g} m"
+    rows.append((near_label, evaluate(fused.vertices, v, t, seen_near, thresholds_m=thresholds)))
+    mesh_path = out_dir / "mesh.ply"
+    if mesh_path.is_file():
+        mesh = read_ply(mesh_path)
+        mesh_samples, _ = sample_surface(mesh.vertices, mesh.faces, 0.02, seed=2)
+        rows.append(
+            ("mesh (2 cm samples)", evaluate(mesh_samples, v, t, seen, thresholds_m=thresholds))
+        )
+        near_label = f"mesh, seen <= {args.near_range:g} m"
+        rows.append((near_label, evaluate(mesh_samples, v, t, seen_near, thresholds_m=thresholds)))
+    errors = distance_to_mesh(fused.vertices, v, t)
+    eval_s = time.perf_counter() - start
+
+    depth_report = report["depth_maps"]
+    per_image = depth_report.get("seconds_per_image")
+    print(f"\nbackend {report['backend']}, {report['images']} images, "
+          f"{report['fused_points']} fused points, mesh {report.get('mesh', {})}")  # fmt: skip
+    print(f"truth samples seen by >= 3 keyframes: {len(seen)} of {len(samples)} (2 cm spacing), "
+          f"{len(seen_near)} of them within {args.near_range:g} m")  # fmt: skip
+    print(f"fused point error: median {100 * np.median(errors):.2f} cm, "
+          f"90th percentile {100 * np.percentile(errors, 90):.2f} cm")  # fmt: skip
+    print()
+    print(f"{'':22s}" + "".join(f"{f'{100 * d:.0f} cm acc/comp/F1':>24s}" for d in thresholds))
+    for label, scores in rows:
+        cells = "".join(
+            f"{f'{100 * s.accuracy:.1f} / {100 * s.completeness:.1f} / {100 * s.f1:.1f}':>24s}"
+            for s in scores
+        )
+        print(f"{label:22s}{cells}")
+    print()
+    timings = report["timings"]
+    n = report["images"]
+    print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
+    if per_image is not None:
+        print(f"depth maps: {per_image:.2f} s per image; whole stage {dense_s / n:.2f} s per image "
+              f"({dense_s:.1f} s for {n}); evaluation {eval_s:.1f} s")  # fmt: skip
+    five = rows[0][1][1]
+    goal = five.accuracy >= 0.9 and five.completeness >= 0.7
+    print(f"goal at 5 cm (accuracy >= 90 %, completeness >= 70 %): {'met' if goal else 'NOT met'}")
+
+
+if __name__ == "__main__":
+    main()

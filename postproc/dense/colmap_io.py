@@ -1,0 +1,270 @@
+"""COLMAP dense-workspace files: depth and normal maps (`.bin`), the workspace layout, and
+the camera/pose summary of an undistorted model.
+
+COLMAP's `mvs::Mat` file format: an ASCII header `"{width}&{height}&{channels}&"` followed
+by `width * height * channels` little-endian float32 values stored channel by channel
+(planar), each channel row-major: the value at (row, col, channel) is at index
+`channel * width * height + row * width + col`. Depth maps hold the camera-frame z of each
+pixel in metres (0 = no depth); normal maps hold unit normals in the camera frame (x right,
+y down, z forward), pointing towards the camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from shared.errors import InputError
+from shared.fsutil import atomic_path
+
+F32 = npt.NDArray[np.float32]
+FloatArray = npt.NDArray[np.float64]
+
+# Longest header we accept: three numbers and three '&' (guards against reading a wrong file).
+_MAX_HEADER_BYTES = 64
+
+
+def array_bytes(array: npt.ArrayLike) -> bytes:
+    """A (H, W) or (H, W, C) array as the bytes of a COLMAP `.bin` map."""
+    values = np.asarray(array, dtype=np.float32)
+    if values.ndim == 2:
+        values = values[..., None]
+    if values.ndim != 3:
+        raise ValueError(f"expected a (H, W) or (H, W, C) array, got shape {values.shape}")
+    height, width, channels = values.shape
+    header = f"{width}&{height}&{channels}&".encode("ascii")
+    planar = np.ascontiguousarray(np.moveaxis(values, 2, 0), dtype="<f4")
+    return header + planar.tobytes()
+
+
+def write_array(path: Path | str, array: npt.ArrayLike, *, overwrite: bool = False) -> Path:
+    """Write a depth map (H, W) or normal map (H, W, 3) in COLMAP's format (atomic)."""
+    data = array_bytes(array)
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def parse_array(data: bytes, *, name: str = "<bytes>") -> F32:
+    """Decode COLMAP `.bin` map bytes: (H, W) for one channel, (H, W, C) otherwise."""
+    fields: list[int] = []
+    start = 0
+    for _ in range(3):
+        end = data.find(b"&", start, _MAX_HEADER_BYTES)
+        if end < 0:
+            raise InputError(
+                f"{name}: not a COLMAP depth/normal map "
+                "(expected a 'width&height&channels&' header)"
+            )
+        text = data[start:end]
+        if not text.isdigit():
+            raise InputError(f"{name}: bad header field {text!r} (expected a positive integer)")
+        fields.append(int(text))
+        start = end + 1
+    width, height, channels = fields
+    expected = width * height * channels * 4
+    if width == 0 or height == 0 or channels == 0 or len(data) - start != expected:
+        raise InputError(
+            f"{name}: header says {width}x{height}x{channels} float32 ({expected} bytes) "
+            f"but {len(data) - start} bytes follow"
+        )
+    planar = np.frombuffer(data, dtype="<f4", offset=start).reshape(channels, height, width)
+    values = np.moveaxis(planar, 0, 2).astype(np.float32)
+    return values[..., 0] if channels == 1 else values
+
+
+def read_array(path: Path | str) -> F32:
+    """Read a COLMAP depth or normal map (`.bin`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such depth/normal map")
+    return parse_array(path.read_bytes(), name=str(path))
+
+
+@dataclass(frozen=True)
+class DenseWorkspace:
+    """The folder layout COLMAP's undistorter writes and stereo fusion reads.
+
+    root/images/<name> (undistorted images), root/sparse/ (PINHOLE model),
+    root/stereo/{depth_maps,normal_maps}/<name>.<kind>.bin with kind "geometric" or
+    "photometric", root/stereo/fusion.cfg (images to fuse, one name a line).
+    """
+
+    root: Path
+
+    @property
+    def images_dir(self) -> Path:
+        return self.root / "images"
+
+    @property
+    def sparse_dir(self) -> Path:
+        return self.root / "sparse"
+
+    @property
+    def stereo_dir(self) -> Path:
+        return self.root / "stereo"
+
+    def depth_map_path(self, image_name: str, kind: str = "geometric") -> Path:
+        return self.stereo_dir / "depth_maps" / f"{image_name}.{kind}.bin"
+
+    def normal_map_path(self, image_name: str, kind: str = "geometric") -> Path:
+        return self.stereo_dir / "normal_maps" / f"{image_name}.{kind}.bin"
+
+    def is_undistorted(self) -> bool:
+        """True when the undistorter finished here (model, images and fusion.cfg present)."""
+        return (
+            (self.sparse_dir / "images.bin").is_file()
+            and self.images_dir.is_dir()
+            and (self.stereo_dir / "fusion.cfg").is_file()
+        )
+
+
+@dataclass
+class PinholeView:
+    """One undistorted image: name, K (3x3, pixels), size, `cam_from_world` (4x4, metres),
+    and the world positions (P, 3) m of the sparse points it observes (depth range,
+    neighbour choice)."""
+
+    name: str
+    K: FloatArray
+    width: int
+    height: int
+    cam_from_world: FloatArray
+    points_m: FloatArray
+
+    def point_depths_m(self) -> FloatArray:
+        """Camera-z depths of the sparse points this image observes (those in front)."""
+        z = self.points_m @ self.cam_from_world[2, :3] + self.cam_from_world[2, 3]
+        return z[z > 0]
+
+    @property
+    def world_from_cam(self) -> FloatArray:
+        return np.linalg.inv(self.cam_from_world)
+
+    @property
+    def centre_m(self) -> FloatArray:
+        return self.world_from_cam[:3, 3]
+
+
+def read_pinhole_views(model_dir: Path | str) -> list[PinholeView]:
+    """The registered images of an undistorted COLMAP model, in the model's registered-image
+    order (the order COLMAP's fusion indexes images in `fused.ply.vis`).
+
+    Raises InputError when the model is missing or holds a non-pinhole camera.
+    """
+    import pycolmap
+
+    model_dir = Path(model_dir)
+    if not (model_dir / "images.bin").is_file():
+        raise InputError(f"{model_dir}: no COLMAP model (expected cameras.bin, images.bin)")
+    rec = pycolmap.Reconstruction(str(model_dir))
+    xyz = {int(pid): np.asarray(point.xyz) for pid, point in rec.points3D.items()}
+    views = []
+    for image_id in rec.reg_image_ids():
+        image = rec.images[image_id]
+        camera = rec.cameras[image.camera_id]
+        if camera.model_name not in ("PINHOLE", "SIMPLE_PINHOLE"):
+            raise InputError(
+                f"{model_dir}: camera {camera.camera_id} is {camera.model_name} "
+                "(expected an undistorted PINHOLE camera)"
+            )
+        K = np.asarray(camera.calibration_matrix(), dtype=np.float64)
+        pose = np.eye(4)
+        pose[:3, :] = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
+        points = np.array(
+            [xyz[int(p.point3D_id)] for p in image.points2D if p.has_point3D()],
+            dtype=np.float64,
+        ).reshape(-1, 3)
+        views.append(
+            PinholeView(
+                name=image.name,
+                K=K,
+                width=int(camera.width),
+                height=int(camera.height),
+                cam_from_world=pose,
+                points_m=points,
+            )
+        )
+    return views
+
+
+def read_fusion_visibility(path: Path | str) -> list[npt.NDArray[np.uint32]]:
+    """The `fused.ply.vis` file of COLMAP's fusion: for each fused point, the indices (in
+    the workspace model's registered-image order) of the images it was fused from.
+
+    Layout: uint64 point count, then per point a uint32 count and that many uint32 indices.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no fusion visibility file")
+    data = path.read_bytes()
+    if len(data) < 8 or (len(data) - 8) % 4:
+        raise InputError(f"{path}: not a fusion visibility file (bad size {len(data)})")
+    count = int(np.frombuffer(data, "<u8", 1)[0])
+    values = np.frombuffer(data, "<u4", offset=8)
+    result: list[npt.NDArray[np.uint32]] = []
+    i = 0
+    for _ in range(count):
+        if i >= len(values):
+            raise InputError(f"{path}: truncated after {len(result)} of {count} points")
+        k = int(values[i])
+        if i + 1 + k > len(values):
+            raise InputError(f"{path}: truncated in point {len(result)} of {count}")
+        result.append(values[i + 1 : i + 1 + k].copy())
+        i += 1 + k
+    if i != len(values):
+        raise InputError(f"{path}: {len(values) - i} values past the last point")
+    return result
+
+
+def write_known_pose_model(
+    model_dir: Path | str,
+    *,
+    camera_model: str,
+    camera_params: npt.ArrayLike,
+    size: tuple[int, int],
+    image_names: list[str],
+    cams_from_world: list[FloatArray],
+    points_m: npt.ArrayLike | None = None,
+    observations: list[list[tuple[int, float, float]]] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a COLMAP binary model of images with known poses (one shared camera).
+
+    camera_model, camera_params: a COLMAP camera ("PINHOLE": fx fy cx cy; "OPENCV": fx fy
+    cx cy k1 k2 p1 p2); size: (width, height) px; cams_from_world: 4x4 `T_C_W` per image;
+    points_m: (P, 3) sparse points in the world; observations: per image, (point index,
+    x px, y px) of each point it sees. Fusion needs the points: it picks each image's
+    overlapping images from the points they share.
+    """
+    import pycolmap
+
+    model_dir = Path(model_dir)
+    width, height = size
+    rec = pycolmap.Reconstruction()
+    camera = pycolmap.Camera.create_from_model_name(1, camera_model, 1.0, int(width), int(height))
+    camera.params = np.asarray(camera_params, dtype=np.float64)
+    rec.add_camera_with_trivial_rig(camera)
+    observations = observations or [[] for _ in image_names]
+    tracks: dict[int, list[tuple[int, int]]] = {}
+    for k, (name, pose) in enumerate(zip(image_names, cams_from_world, strict=True)):
+        seen = observations[k]
+        keypoints = np.array([(x, y) for _, x, y in seen], dtype=np.float64).reshape(-1, 2)
+        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=1, image_id=k + 1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(np.asarray(pose)[:3, :4]))
+        for idx, (point, _, _) in enumerate(seen):
+            tracks.setdefault(int(point), []).append((k + 1, idx))
+    if points_m is not None:
+        points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+        for point, elements in sorted(tracks.items()):
+            if len(elements) < 2:
+                continue
+            track = pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in elements])
+            rec.add_point3D(points[point], track, np.array([128, 128, 128], np.uint8))
+    with atomic_path(model_dir, overwrite=overwrite) as tmp:
+        tmp.mkdir(parents=True)
+        rec.write_binary(str(tmp))
+    return model_dir

@@ -1,0 +1,194 @@
+"""ETH3D-style evaluation of a dense reconstruction against a truth mesh (pure math).
+
+accuracy(d): fraction of reconstructed points within d of the truth surface;
+completeness(d): fraction of truth-surface samples within d of a reconstructed point,
+counting only the samples seen by at least `min_views` cameras (a surface nobody filmed
+cannot be reconstructed); F1 is their harmonic mean. Distances to the truth are exact
+point-to-triangle distances over the triangles near each point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+def point_triangle_distance(
+    points: FloatArray, a: FloatArray, b: FloatArray, c: FloatArray
+) -> FloatArray:
+    """Euclidean distance (N,) from each point (N,3) to its triangle (a[i], b[i], c[i])
+    (Ericson's closest-point regions, vectorised)."""
+    p = np.asarray(points, dtype=np.float64)
+    ab, ac, ap = b - a, c - a, p - a
+    d1 = np.einsum("ij,ij->i", ab, ap)
+    d2 = np.einsum("ij,ij->i", ac, ap)
+    bp = p - b
+    d3 = np.einsum("ij,ij->i", ab, bp)
+    d4 = np.einsum("ij,ij->i", ac, bp)
+    cp = p - c
+    d5 = np.einsum("ij,ij->i", ab, cp)
+    d6 = np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v = vb / denom
+        w = vc / denom
+        closest = a + ab * v[:, None] + ac * w[:, None]  # inside the face
+        # Edge regions.
+        t_ab = d1 / (d1 - d3)
+        on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        closest = np.where(on_ab[:, None], a + ab * t_ab[:, None], closest)
+        t_ac = d2 / (d2 - d6)
+        on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        closest = np.where(on_ac[:, None], a + ac * t_ac[:, None], closest)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        on_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+        closest = np.where(on_bc[:, None], b + (c - b) * t_bc[:, None], closest)
+    # Vertex regions last (they take precedence).
+    closest = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, closest)
+    closest = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, closest)
+    closest = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, closest)
+    return np.linalg.norm(p - closest, axis=1)
+
+
+def sample_surface(
+    vertices: FloatArray, triangles: IntArray, spacing_m: float, *, seed: int = 0
+) -> tuple[FloatArray, IntArray]:
+    """Random points on the triangles, about one per `spacing_m`^2 (at least one per
+    triangle); returns (points (S,3), triangle index (S,))."""
+    rng = np.random.default_rng(seed)
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    counts = np.maximum(np.round(area / spacing_m**2).astype(np.int64), 1)
+    tri = np.repeat(np.arange(len(t)), counts)
+    r1, r2 = rng.random(len(tri)), rng.random(len(tri))
+    flip = r1 + r2 > 1.0
+    r1[flip], r2[flip] = 1.0 - r1[flip], 1.0 - r2[flip]
+    points = a[tri] + (b[tri] - a[tri]) * r1[:, None] + (c[tri] - a[tri]) * r2[:, None]
+    return points, tri
+
+
+def distance_to_mesh(
+    points: FloatArray,
+    vertices: FloatArray,
+    triangles: IntArray,
+    *,
+    sample_spacing_m: float = 0.05,
+    candidates: int = 8,
+    max_distance_m: float = 1.0,
+) -> FloatArray:
+    """Distance (N,) from each point to the mesh: exact point-to-triangle distance over the
+    triangles of the `candidates` nearest surface samples (upper bound of the true
+    distance, exact wherever the nearest triangle is among them).
+
+    Only triangles whose bounding box comes within `max_distance_m` of the points' bounding
+    box are considered (a large truth mesh, small reconstruction), so distances beyond
+    `max_distance_m` are upper bounds (inf when no triangle is that close)."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    if len(points) == 0:
+        return np.zeros(0)
+    lo, hi = points.min(axis=0) - max_distance_m, points.max(axis=0) + max_distance_m
+    corners = v[t]
+    near = np.all(corners.max(axis=1) >= lo, axis=1) & np.all(corners.min(axis=1) <= hi, axis=1)
+    t = t[near]
+    if len(t) == 0:
+        return np.full(len(points), np.inf)
+    samples, tri_of_sample = sample_surface(v, t, sample_spacing_m)
+    # Triangle vertices themselves are samples too, so small triangles are never missed.
+    samples = np.concatenate([samples, v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]])
+    tri_of_sample = np.concatenate([tri_of_sample, np.tile(np.arange(len(t)), 3)])
+    _, nearest = cKDTree(samples).query(points, k=min(candidates, len(samples)))
+    nearest = nearest.reshape(len(points), -1)
+    best = np.full(len(points), np.inf)
+    for k in range(nearest.shape[1]):
+        tri = t[tri_of_sample[nearest[:, k]]]
+        d = point_triangle_distance(points, v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]])
+        best = np.minimum(best, d)
+    return best
+
+
+def visibility_counts(
+    points_m: FloatArray,
+    Ks: list[FloatArray],
+    cams_from_world: list[FloatArray],
+    depth_maps_m: list[npt.NDArray[np.float32]],
+    *,
+    tolerance_m: float = 0.02,
+    tolerance_rel: float = 0.01,
+    max_range_m: float = np.inf,
+) -> IntArray:
+    """How many cameras see each point: it projects inside the (pinhole) image, in front,
+    no farther than `max_range_m` from the camera centre, and the camera's true depth map
+    there agrees with its depth (no occluder)."""
+    points = np.asarray(points_m, dtype=np.float64)
+    counts = np.zeros(len(points), np.int64)
+    for K, pose, depth in zip(Ks, cams_from_world, depth_maps_m, strict=True):
+        height, width = depth.shape
+        pc = points @ pose[:3, :3].T + pose[:3, 3]
+        front = np.flatnonzero(pc[:, 2] > 1e-3)
+        uv = (pc[front] @ K.T)[:, :2] / pc[front, 2:3]
+        u = np.round(uv[:, 0]).astype(np.int64)
+        v = np.round(uv[:, 1]).astype(np.int64)
+        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        idx, u, v = front[inside], u[inside], v[inside]
+        z = pc[idx, 2]
+        true_z = depth[v, u].astype(np.float64)
+        seen = np.isfinite(true_z) & (np.abs(true_z - z) <= tolerance_m + tolerance_rel * z)
+        seen &= np.linalg.norm(pc[idx], axis=1) <= max_range_m
+        counts[idx[seen]] += 1
+    return counts
+
+
+@dataclass
+class Scores:
+    """Accuracy, completeness and F1 (fractions 0..1) at one distance threshold (m)."""
+
+    threshold_m: float
+    accuracy: float
+    completeness: float
+
+    @property
+    def f1(self) -> float:
+        s = self.accuracy + self.completeness
+        return 0.0 if s == 0 else 2.0 * self.accuracy * self.completeness / s
+
+
+def evaluate(
+    recon_points_m: FloatArray,
+    truth_vertices: FloatArray,
+    truth_triangles: IntArray,
+    truth_samples_m: FloatArray,
+    *,
+    thresholds_m: tuple[float, ...] = (0.02, 0.05, 0.10),
+) -> list[Scores]:
+    """Scores of a reconstruction (points) against the truth mesh, completeness measured
+    on `truth_samples_m` (already restricted to the surface that was seen)."""
+    from scipy.spatial import cKDTree
+
+    recon = np.asarray(recon_points_m, dtype=np.float64).reshape(-1, 3)
+    samples = np.asarray(truth_samples_m, dtype=np.float64).reshape(-1, 3)
+    if len(recon) == 0:
+        return [Scores(threshold_m=d, accuracy=0.0, completeness=0.0) for d in thresholds_m]
+    to_truth = distance_to_mesh(recon, truth_vertices, truth_triangles)
+    to_recon, _ = cKDTree(recon).query(samples) if len(samples) else (np.zeros(0), None)
+    return [
+        Scores(
+            threshold_m=d,
+            accuracy=float(np.mean(to_truth <= d)),
+            completeness=float(np.mean(to_recon <= d)) if len(samples) else 0.0,
+        )
+        for d in thresholds_m
+    ]

@@ -1,0 +1,141 @@
+"""Binary little-endian PLY: the point clouds and meshes COLMAP writes and we write back.
+
+Reads any binary_little_endian file whose elements hold scalar properties or one list
+property (faces); writes vertices (xyz, optional normals and colours) and triangles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from shared.errors import InputError
+from shared.fsutil import atomic_path
+
+_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
+    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+}  # fmt: skip
+
+
+@dataclass
+class PlyData:
+    """vertices (V,3) float64 m; normals (V,3) or None; colors (V,3) uint8 or None;
+    faces (F,3) int64 (empty for point clouds)."""
+
+    vertices: npt.NDArray[np.float64]
+    normals: npt.NDArray[np.float64] | None = None
+    colors: npt.NDArray[np.uint8] | None = None
+    faces: npt.NDArray[np.int64] | None = None
+
+
+def read_ply(path: Path | str) -> PlyData:
+    """Read a binary little-endian PLY (vertex element with x, y, z; optional face element
+    of triangles)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such PLY file")
+    data = path.read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise InputError(f"{path}: not a PLY file (expected 'ply' ... 'end_header')")
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    offset = end + len(b"end_header\n")
+    elements: list[tuple[str, int, list[tuple[str, ...]]]] = []
+    fmt = ""
+    for line in header[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements:
+            elements[-1][2].append(tuple(words[1:]))
+    if fmt != "binary_little_endian":
+        raise InputError(f"{path}: PLY format {fmt!r} (expected binary_little_endian)")
+    result = PlyData(vertices=np.zeros((0, 3)))
+    for name, count, props in elements:
+        if any(p[0] == "list" for p in props):
+            if len(props) != 1 or count == 0:
+                if count == 0:
+                    continue
+                raise InputError(f"{path}: element {name} mixes list and scalar properties")
+            _, count_type, index_type, _ = props[0]
+            ctype, itype = np.dtype(_TYPES[count_type]), np.dtype(_TYPES[index_type])
+            # Triangles only (what Poisson meshing writes): fixed-size records.
+            record = np.dtype([("n", ctype), ("idx", itype, (3,))])
+            size = record.itemsize * count
+            rec = np.frombuffer(data, dtype=record, count=count, offset=offset)
+            if np.any(rec["n"] != 3):
+                raise InputError(f"{path}: faces other than triangles are not supported")
+            if name == "face":
+                result.faces = rec["idx"].astype(np.int64)
+            offset += size
+            continue
+        try:
+            record = np.dtype([(p[1], _TYPES[p[0]]) for p in props])
+        except KeyError as error:
+            raise InputError(f"{path}: unknown PLY property type {error}") from error
+        rec = np.frombuffer(data, dtype=record, count=count, offset=offset)
+        offset += record.itemsize * count
+        if name != "vertex":
+            continue
+        names = record.names or ()
+        result.vertices = np.column_stack([rec[a] for a in ("x", "y", "z")]).astype(np.float64)
+        if all(a in names for a in ("nx", "ny", "nz")):
+            result.normals = np.column_stack([rec[a] for a in ("nx", "ny", "nz")]).astype(
+                np.float64
+            )
+        if all(a in names for a in ("red", "green", "blue")):
+            result.colors = np.column_stack([rec[a] for a in ("red", "green", "blue")]).astype(
+                np.uint8
+            )
+    return result
+
+
+def ply_bytes(ply: PlyData) -> bytes:
+    """Encode as binary little-endian PLY (float32 coordinates and normals, uchar colours)."""
+    v = np.asarray(ply.vertices, dtype=np.float64).reshape(-1, 3)
+    fields: list[tuple[str, str]] = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if ply.normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    if ply.colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    record = np.empty(len(v), dtype=np.dtype(fields))
+    for k, axis in enumerate("xyz"):
+        record[axis] = v[:, k]
+    if ply.normals is not None:
+        for k, axis in enumerate(("nx", "ny", "nz")):
+            record[axis] = ply.normals[:, k]
+    if ply.colors is not None:
+        for k, axis in enumerate(("red", "green", "blue")):
+            record[axis] = ply.colors[:, k]
+    names = {"<f4": "float", "u1": "uchar"}
+    lines = ["ply", "format binary_little_endian 1.0", f"element vertex {len(v)}"]
+    lines += [f"property {names[t]} {n}" for n, t in fields]
+    faces = np.zeros((0, 3), np.int64) if ply.faces is None else np.asarray(ply.faces)
+    if ply.faces is not None:
+        lines += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    lines.append("end_header")
+    body = record.tobytes()
+    if ply.faces is not None:
+        frec = np.empty(len(faces), dtype=np.dtype([("n", "u1"), ("idx", "<i4", (3,))]))
+        frec["n"] = 3
+        frec["idx"] = faces
+        body += frec.tobytes()
+    return ("\n".join(lines) + "\n").encode("ascii") + body
+
+
+def write_ply(path: Path | str, ply: PlyData, *, overwrite: bool = False) -> Path:
+    """Write `ply` (atomic; refuses to overwrite unless asked)."""
+    data = ply_bytes(ply)
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)

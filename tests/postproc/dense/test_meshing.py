@@ -1,0 +1,118 @@
+"""Octree depth from the scene, Poisson meshing of a cloud, trimming, PLY round trips."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from postproc.dense.meshing import (
+    MeshingOptions,
+    choose_octree_depth,
+    mesh,
+    point_spacing_m,
+    scene_extent_m,
+    trim_mesh,
+)
+from postproc.dense.ply import PlyData, read_ply, write_ply
+from shared.errors import InputError, OutputExistsError
+
+
+@pytest.mark.parametrize(
+    ("extent", "spacing", "expected"),
+    [
+        (5.0, 0.02, 8),  # 250 cells -> 2^8 = 256
+        (5.0, 0.01, 9),  # 500 -> 512
+        (40.0, 0.01, 11),  # 4000 -> 12, clamped to 11
+        (0.5, 0.05, 6),  # 10 -> 4, clamped to 6
+        (8.0, 0.0625, 7),  # exactly 128 -> 7
+    ],
+)
+def test_octree_depth_choice(extent: float, spacing: float, expected: int) -> None:
+    assert choose_octree_depth(extent, spacing) == expected
+
+
+def test_octree_depth_bounds_and_errors() -> None:
+    assert choose_octree_depth(40.0, 0.01, max_depth=13) == 12
+    with pytest.raises(ValueError, match="positive"):
+        choose_octree_depth(0.0, 0.01)
+
+
+def plane_cloud(rng: np.random.Generator, spacing: float = 0.02, size: float = 2.0) -> PlyData:
+    """A noisy square of the plane z = 0 (normals +z, grey)."""
+    n = int(size / spacing)
+    x, y = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
+    points = np.column_stack((x.ravel(), y.ravel(), rng.normal(0, 0.002, x.size)))
+    points[:, :2] += rng.uniform(-0.3, 0.3, (x.size, 2)) * spacing
+    normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    colors = np.full((len(points), 3), 120, np.uint8)
+    return PlyData(vertices=points, normals=normals, colors=colors)
+
+
+def test_spacing_and_extent() -> None:
+    cloud = plane_cloud(np.random.default_rng(0))
+    assert 0.012 < point_spacing_m(cloud.vertices) < 0.022
+    assert scene_extent_m(cloud.vertices) == pytest.approx(2.0, abs=0.05)
+    with pytest.raises(ValueError, match="two points"):
+        point_spacing_m(np.zeros((1, 3)))
+
+
+def test_ply_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    ply = PlyData(
+        vertices=rng.normal(size=(5, 3)),
+        normals=rng.normal(size=(5, 3)),
+        colors=rng.integers(0, 255, (5, 3)).astype(np.uint8),
+        faces=np.array([[0, 1, 2], [2, 3, 4]]),
+    )
+    back = read_ply(write_ply(tmp_path / "a.ply", ply))
+    np.testing.assert_allclose(back.vertices, ply.vertices, rtol=1e-6)
+    np.testing.assert_allclose(back.normals, ply.normals, rtol=1e-6)
+    np.testing.assert_array_equal(back.colors, ply.colors)
+    np.testing.assert_array_equal(back.faces, ply.faces)
+    with pytest.raises(OutputExistsError):
+        write_ply(tmp_path / "a.ply", ply)
+
+
+def test_bad_ply_files(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="no such PLY"):
+        read_ply(tmp_path / "none.ply")
+    (tmp_path / "t.ply").write_bytes(b"hello")
+    with pytest.raises(InputError, match="not a PLY"):
+        read_ply(tmp_path / "t.ply")
+    (tmp_path / "a.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    with pytest.raises(InputError, match="ascii"):
+        read_ply(tmp_path / "a.ply")
+
+
+def test_trim_keeps_supported_triangles() -> None:
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 0], [6, 5, 0]], float)
+    faces = np.array([[0, 1, 2], [1, 3, 4]])
+    points = vertices[:3] + 0.01
+    out = trim_mesh(PlyData(vertices=vertices, faces=faces), points, 0.1)
+    np.testing.assert_array_equal(out.faces, [[0, 1, 2]])
+    assert len(out.vertices) == 3
+
+
+def test_poisson_mesh_of_a_plane(tmp_path: Path) -> None:
+    cloud = plane_cloud(np.random.default_rng(1), spacing=0.03)
+    fused = write_ply(tmp_path / "fused.ply", cloud)
+    report = mesh(MeshingOptions(num_threads=1), fused, tmp_path / "mesh.ply")
+    # 2 m at about 2.3 cm nearest-neighbour spacing (jittered 3 cm grid): 2^7 cells.
+    assert report.octree_depth == choose_octree_depth(report.extent_m, report.spacing_m) == 7
+    surface = read_ply(tmp_path / "mesh.ply")
+    assert report.faces == len(surface.faces) > 500
+    assert np.abs(surface.vertices[:, 2]).max() < 0.02
+    # Trimmed to the cloud: nothing beyond the square (plus the trim distance).
+    assert surface.vertices[:, :2].min() > -0.1 and surface.vertices[:, :2].max() < 2.1
+    assert surface.colors is not None
+    with pytest.raises(OutputExistsError):
+        mesh(MeshingOptions(), fused, tmp_path / "mesh.ply")
+
+
+def test_meshing_refuses_clouds_without_normals(tmp_path: Path) -> None:
+    cloud = plane_cloud(np.random.default_rng(1))
+    fused = write_ply(tmp_path / "f.ply", PlyData(vertices=cloud.vertices))
+    with pytest.raises(InputError, match="without normals"):
+        mesh(MeshingOptions(), fused, tmp_path / "mesh.ply")

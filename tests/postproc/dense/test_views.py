@@ -1,0 +1,62 @@
+"""Neighbour choice: overlap, triangulation angle and sideways motion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from postproc.dense.views import NeighbourOptions, pair_score, select_neighbours, view_overlap
+
+K = np.array([[200.0, 0.0, 160.0], [0.0, 200.0, 120.0], [0.0, 0.0, 1.0]])
+SIZE = (320, 240)
+
+
+def cam_from_world_at(
+    x: float, *, y: float = 0.0, z: float = 0.0, yaw_deg: float = 0.0
+) -> np.ndarray:
+    """A camera at (x, y, z) looking along +z (turned by yaw about the y axis)."""
+    a = np.radians(yaw_deg)
+    world_from_cam = np.eye(4)
+    world_from_cam[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    world_from_cam[:3, 3] = (x, y, z)
+    return np.linalg.inv(world_from_cam)
+
+
+def test_overlap_of_shifted_views() -> None:
+    ref = cam_from_world_at(0.0)
+    assert view_overlap(K, SIZE, np.linalg.inv(ref), 3.0, K, SIZE, ref) == pytest.approx(1.0)
+    # Shifted by half the footprint (3 m * 320/200 = 4.8 m wide): about half overlaps.
+    half = view_overlap(K, SIZE, np.linalg.inv(ref), 3.0, K, SIZE, cam_from_world_at(2.4))
+    assert 0.35 < half < 0.65
+    away = cam_from_world_at(0.0, yaw_deg=180.0)
+    assert view_overlap(K, SIZE, np.linalg.inv(ref), 3.0, K, SIZE, away) == 0.0
+
+
+def test_row_of_cameras_prefers_the_best_angle() -> None:
+    # Cameras every 0.1 m along x, scene 3 m away: 10 degrees is about 0.52 m of baseline.
+    poses = [cam_from_world_at(0.1 * k) for k in range(21)]
+    chosen = select_neighbours([K] * 21, [SIZE] * 21, poses, [3.0] * 21, NeighbourOptions())
+    assert len(chosen[10]) == 4
+    baselines = [abs(j - 10) * 0.1 for j in chosen[10]]
+    assert baselines[0] == pytest.approx(0.5, abs=0.11)
+    # 2 degrees at 3 m is 0.105 m: the immediate neighbours are too close.
+    assert 9 not in chosen[10] and 11 not in chosen[10]
+    assert all(j != 10 for j in chosen[10])
+
+
+def test_forward_motion_and_tiny_baselines_are_rejected() -> None:
+    options = NeighbourOptions()
+    common = {"centre_ref_m": np.zeros(3), "axis_ref": np.array([0.0, 0.0, 1.0]),
+              "depth_ref_m": 3.0, "overlap": 1.0, "options": options}  # fmt: skip
+    assert pair_score(centre_src_m=np.array([0.0, 0.0, 0.5]), **common) == 0.0  # forward
+    assert pair_score(centre_src_m=np.array([0.05, 0.0, 0.0]), **common) == 0.0  # < 2 deg
+    assert pair_score(centre_src_m=np.array([3.0, 0.0, 0.0]), **common) == 0.0  # > 30 deg
+    sideways = pair_score(centre_src_m=np.array([0.5, 0.0, 0.0]), **common)
+    assert 0.9 < sideways <= 1.0
+    low_overlap = dict(common, overlap=0.1)
+    assert pair_score(centre_src_m=np.array([0.5, 0.0, 0.0]), **low_overlap) == 0.0
+
+
+def test_no_neighbours_for_a_lonely_camera() -> None:
+    poses = [cam_from_world_at(0.0), cam_from_world_at(50.0)]
+    assert select_neighbours([K, K], [SIZE, SIZE], poses, [3.0, 3.0]) == [[], []]
