@@ -88,8 +88,8 @@ def parse_pnf(data: bytes, *, where: str = "dive") -> ParsedDive:
     """
     if data[:2] == b"\xff\xff":
         raise InputError(
-            f"{where}: legacy Predator-like log layout (starts FF FF); only the Petrel Native "
-            "Format is supported"
+            f"{where}: legacy Predator-like log layout (FF FF at byte 0); only the Petrel "
+            "Native Format is supported"
         )
     usable = len(data) - len(data) % RECORD
     if usable == 0:

@@ -300,7 +300,9 @@ def _video_of(chapter: Chapter, mp4: MP4File) -> _ChapterVideo:
     track = mp4.video_track()
     if track.sample_count == 0:
         raise InputError(f"{chapter.path.name}: video track has no samples")
-    config = parse_codec_config(track.codec, track.codec_config, source=chapter.path.name)
+    config = parse_codec_config(
+        track.codec, track.codec_config, source=f"{chapter.path.name}: track {track.track_id}"
+    )
     if not config.parameter_sets:
         raise InputError(f"{chapter.path.name}: {track.codec} has no SPS/PPS in its sample entry")
     start = int(track.edit_media_time)

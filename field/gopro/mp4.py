@@ -475,15 +475,19 @@ def _parse_moov(
                     created, _, timescale, duration = struct.unpack_from(">QQIQ", body, 4)
                 else:
                     created, _, timescale, duration = struct.unpack_from(">IIII", body, 4)
-                creation_time = MP4_EPOCH + timedelta(seconds=created) if created else None
+                creation_time = _mp4_time(created)
             elif box.type == "udta":
                 for child in _boxes_in(
                     body, 0, len(body), source=source, base=base + box.payload_offset
                 ):
                     user_data.setdefault(child.type, body[child.payload_offset : child.end])
             elif box.type == "trak":
-                tracks.append(_parse_trak(body, source=source, base=base + box.payload_offset))
-        except struct.error as error:
+                tracks.append(
+                    _parse_trak(
+                        body, source=source, base=base + box.payload_offset, file_size=file_size
+                    )
+                )
+        except (struct.error, IndexError) as error:
             raise InputError(
                 f"{source}: box {box.type!r} at byte {base + box.offset} is too short ({error})"
             ) from error
@@ -507,6 +511,14 @@ def _parse_moov(
     )
 
 
+def _mp4_time(seconds: int) -> datetime | None:
+    """mvhd creation time (seconds since 1904) as UTC; None when 0 or beyond year 9999."""
+    try:
+        return MP4_EPOCH + timedelta(seconds=seconds) if seconds else None
+    except OverflowError:  # a corrupt header: keep the file readable, drop the date
+        return None
+
+
 def _children(data: bytes, *, source: str, base: int) -> dict[str, bytes]:
     out: dict[str, bytes] = {}
     for box in _boxes_in(data, 0, len(data), source=source, base=base):
@@ -514,7 +526,7 @@ def _children(data: bytes, *, source: str, base: int) -> dict[str, bytes]:
     return out
 
 
-def _parse_trak(data: bytes, *, source: str, base: int) -> Track:
+def _parse_trak(data: bytes, *, source: str, base: int, file_size: int) -> Track:
     trak = _children(data, source=source, base=base)
     tkhd = trak.get("tkhd", b"")
     track_id = 0
@@ -537,6 +549,8 @@ def _parse_trak(data: bytes, *, source: str, base: int) -> Track:
         timescale, duration = struct.unpack_from(">IQ", mdhd, 20)
     else:
         timescale, duration = struct.unpack_from(">II", mdhd, 12)
+    if timescale == 0:
+        raise InputError(f"{source}: track {track_id} has a media timescale of 0 ('mdhd')")
     hdlr = mdia.get("hdlr", b"")
     handler = hdlr[8:12].decode("latin-1") if len(hdlr) >= 12 else ""
     handler_name = _handler_name(hdlr[24:])
@@ -552,7 +566,7 @@ def _parse_trak(data: bytes, *, source: str, base: int) -> Track:
         edit_media_time=edit_media_time,
     )
     _parse_stsd(stbl.get("stsd", b""), track, source=source, base=base)
-    _parse_sample_table(stbl, track, source=source)
+    _parse_sample_table(stbl, track, source=source, file_size=file_size)
     return track
 
 
@@ -577,13 +591,35 @@ def _parse_stsd(stsd: bytes, track: Track, *, source: str, base: int) -> None:
                 track.codec_config = entry[box.payload_offset : box.end]
 
 
-def _parse_sample_table(stbl: dict[str, bytes], track: Track, *, source: str) -> None:
+def _repeat_limited(values: np.ndarray, counts: np.ndarray, limit: int) -> np.ndarray:
+    """`np.repeat(values, counts)[:limit]` without building more than `limit` items
+    (run-length tables of a corrupt file may declare billions of samples)."""
+    counts = np.maximum(counts.astype(np.int64), 0)  # ctts v1 reads counts as signed
+    totals = np.cumsum(counts)
+    if totals.size and int(totals[-1]) > limit:
+        last = int(np.searchsorted(totals, limit))
+        counts = counts[: last + 1].copy()
+        counts[last] -= int(totals[last]) - limit
+        values = values[: last + 1]
+    repeated: np.ndarray = np.repeat(values, counts)
+    return repeated
+
+
+def _parse_sample_table(
+    stbl: dict[str, bytes], track: Track, *, source: str, file_size: int
+) -> None:
     where = f"{source}: track {track.track_id}"
     # Sample sizes.
     if "stsz" in stbl:
         stsz = stbl["stsz"]
         fixed, count = struct.unpack_from(">II", stsz, 4)
         if fixed:
+            # Checked before allocating: every sample is `fixed` bytes of this file.
+            if count * fixed > file_size:
+                raise InputError(
+                    f"{where}: 'stsz' declares {count} samples of {fixed} bytes, more than "
+                    f"the file's {file_size} bytes"
+                )
             sizes = np.full(count, fixed, dtype=np.uint32)
         else:
             _need(stsz, 12 + 4 * count, where, "stsz")
@@ -630,7 +666,7 @@ def _parse_sample_table(stbl: dict[str, bytes], track: Track, *, source: str) ->
         raise InputError(
             f"{where}: stsc/stco describe {int(samples_per_chunk.sum())} samples, stsz {n}"
         )
-    chunk_of_sample = np.repeat(np.arange(len(chunk_offsets)), samples_per_chunk)[:n]
+    chunk_of_sample = _repeat_limited(np.arange(len(chunk_offsets)), samples_per_chunk, n)
     first_in_chunk = np.concatenate([[0], np.cumsum(samples_per_chunk)[:-1]])
     size_cumsum = np.concatenate([[0], np.cumsum(sizes.astype(np.uint64))])
     within = size_cumsum[:n] - size_cumsum[first_in_chunk[chunk_of_sample]]
@@ -641,7 +677,7 @@ def _parse_sample_table(stbl: dict[str, bytes], track: Track, *, source: str) ->
     entries = _u32(stts, 4) if stts else 0
     _need(stts, 8 + 8 * entries, where, "stts")
     pairs = np.frombuffer(stts, ">u4", 2 * entries, 8).reshape(entries, 2).astype(np.int64)
-    durations = np.repeat(pairs[:, 1], pairs[:, 0])
+    durations = _repeat_limited(pairs[:, 1], pairs[:, 0], n)
     if durations.shape[0] < n:
         raise InputError(f"{where}: stts covers {durations.shape[0]} samples, stsz {n}")
     track.durations = durations[:n]
@@ -653,7 +689,7 @@ def _parse_sample_table(stbl: dict[str, bytes], track: Track, *, source: str) ->
         _need(ctts, 8 + 8 * entries, where, "ctts")
         dtype = ">i4" if ctts[0] == 1 else ">u4"
         raw = np.frombuffer(ctts, dtype, 2 * entries, 8).reshape(entries, 2).astype(np.int64)
-        offsets = np.repeat(raw[:, 1], raw[:, 0].astype(np.int64))[:n]
+        offsets = _repeat_limited(raw[:, 1], raw[:, 0], n)
         track.composition_times[: offsets.shape[0]] += offsets
     if "stss" in stbl:
         stss = stbl["stss"]

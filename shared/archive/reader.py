@@ -165,21 +165,41 @@ def _parse_channel(body: bytes | memoryview) -> _Channel:
     return _Channel(channel_id, schema_id, topic, fields.string())
 
 
+_DECOMPRESS_PIECE = 1 << 20
+
+
 def _decompress(compression: str, data: bytes, uncompressed_size: int) -> bytes:
+    """The chunk's records; ValueError when they cannot be had.
+
+    Memory stays bounded by what the data really holds: a zstd frame may declare any
+    content size (and the chunk any `uncompressed_size`), so output is pulled in
+    pieces and never more than `uncompressed_size` + 1 bytes.
+    """
     if compression == "":
         return data
     if compression == "zstd":
         import zstandard
 
-        return bytes(
-            zstandard.ZstdDecompressor().decompress(data, max_output_size=uncompressed_size)
-        )
+        out = bytearray()
+        try:
+            with zstandard.ZstdDecompressor().stream_reader(data) as stream:
+                while len(out) <= uncompressed_size:
+                    piece = stream.read(min(_DECOMPRESS_PIECE, uncompressed_size + 1 - len(out)))
+                    if not piece:
+                        break
+                    out += piece
+        except zstandard.ZstdError as error:
+            raise ValueError(f"zstd: {error}") from None
+        return bytes(out)
     if compression == "lz4":
         try:
             import lz4.frame  # type: ignore[import-untyped, import-not-found, unused-ignore]
         except ImportError:
             raise ValueError("chunk compressed with lz4, which is not installed") from None
-        return bytes(lz4.frame.decompress(data))
+        try:
+            return bytes(lz4.frame.decompress(data))
+        except RuntimeError as error:
+            raise ValueError(f"lz4: {error}") from None
     raise ValueError(f"unknown chunk compression {compression!r}")
 
 
@@ -212,6 +232,7 @@ class ArchiveReader:
         self._metadata: dict[str, dict[str, str]] = {}
         self._statistics: tuple[int, int, int] | None = None  # count, start, end
         self._topic_info: dict[str, TopicInfo] | None = None
+        self._orphans: dict[int, int] = {}  # undefined channel id -> messages skipped
         try:
             self._file: BinaryIO = self.path.open("rb")
         except OSError as error:
@@ -228,6 +249,11 @@ class ArchiveReader:
         return InputError(f"{self.path}: {what}")
 
     def _read_at(self, offset: int, size: int) -> bytes:
+        # Checked before reading: a corrupt length must not make read() allocate it.
+        if offset < 0 or size < 0 or offset + size > self._size:
+            raise ValueError(
+                f"{size} bytes at offset {offset} run past the end of the file ({self._size})"
+            )
         self._file.seek(offset)
         data = self._file.read(size)
         if len(data) != size:
@@ -236,6 +262,7 @@ class ArchiveReader:
 
     def _open(self) -> None:
         self._size = self.path.stat().st_size
+        self._file.seek(0)
         head = self._file.read(len(rec.MAGIC) + _RECORD_HEAD.size)
         if head[: len(rec.MAGIC)] != rec.MAGIC:
             raise self._error(
@@ -243,7 +270,9 @@ class ArchiveReader:
                 f"found {head[:8].hex(' ') or 'an empty file'})"
             )
         if len(head) < len(rec.MAGIC) + _RECORD_HEAD.size or head[8] != rec.OP_HEADER:
-            raise self._error("truncated MCAP file (no Header record after the magic)")
+            raise self._error(
+                f"truncated MCAP file (no Header record after the magic at byte {len(rec.MAGIC)})"
+            )
         header_length = _U64.unpack_from(head, 9)[0]
         self._data_start = len(head) + header_length
         try:
@@ -251,13 +280,15 @@ class ArchiveReader:
             self.profile = header.string()
             self.library = header.string()
         except (ValueError, UnicodeDecodeError):
-            raise self._error("truncated MCAP file (Header record cut short)") from None
+            raise self._error(
+                f"truncated MCAP file (Header record cut short at byte {len(head)})"
+            ) from None
         footer = self._footer()
         if footer is None:
             if not self.salvage:
                 raise self._error(
                     "truncated MCAP file (no footer: the writer did not finish; "
-                    "open it with salvage=True or recover it)"
+                    f"open it with salvage=True or recover it; file ends at byte {self._size})"
                 )
             self.warnings.append(f"{self.path.name}: no footer (unfinished recording)")
             self._scan(self._size)
@@ -270,9 +301,10 @@ class ArchiveReader:
         try:
             self._read_summary(summary_start, footer_offset)
         except (ValueError, UnicodeDecodeError, KeyError, struct.error) as error:
+            where = f"summary at offset {summary_start}"
             if not self.salvage:
-                raise self._error(f"damaged MCAP summary ({error})") from None
-            self.warnings.append(f"{self.path.name}: damaged summary ({error}); scanning")
+                raise self._error(f"damaged MCAP {where} ({error})") from None
+            self.warnings.append(f"{self.path.name}: damaged {where} ({error}); scanning")
             self._schemas.clear()
             self._channels.clear()
             self._segments.clear()
@@ -404,7 +436,7 @@ class ArchiveReader:
         data = self._read_at(segment.offset, segment.length)
         if not segment.is_chunk:
             return data
-        if data[0] != rec.OP_CHUNK:
+        if not data or data[0] != rec.OP_CHUNK:
             raise ValueError(f"no Chunk record at offset {segment.offset}")
         fields = _Fields(data, 9)
         fields.pos += 16
@@ -528,9 +560,10 @@ class ArchiveReader:
                 or candidates[next_segment].start_time > found[-1][0]
             ):
                 # One chunk alone until its end (the usual case): no heap work per message.
-                channels = self._channels
                 for log_time, _, channel_id, data in found[position:]:
-                    yield channels[channel_id], log_time, data
+                    channel = self._known_channel(channel_id)
+                    if channel is not None:
+                        yield channel, log_time, data
                 heapq.heappop(heap)
                 del loaded[order]
                 continue
@@ -540,7 +573,22 @@ class ArchiveReader:
             else:
                 heapq.heappop(heap)
                 del loaded[order]
-            yield self._channels[channel_id], log_time, data
+            channel = self._known_channel(channel_id)
+            if channel is not None:
+                yield channel, log_time, data
+
+    def _known_channel(self, channel_id: int) -> _Channel | None:
+        """The channel of a message; None (and a warning, once) when no Channel record
+        defines it (a damaged id): the message cannot be attributed to a topic."""
+        channel = self._channels.get(channel_id)
+        if channel is None:
+            self._orphans[channel_id] = self._orphans.get(channel_id, 0) + 1
+            if self._orphans[channel_id] == 1:
+                self.warnings.append(
+                    f"{self.path.name}: skipped messages of channel {channel_id}, which no "
+                    "Channel record defines"
+                )
+        return channel
 
     # -- public API ---------------------------------------------------------
 
@@ -598,6 +646,7 @@ class ArchiveReader:
 
     def _topics_from_indexes(self) -> dict[str, TopicInfo]:
         times: dict[int, list[NDArray[np.uint64]]] = {}
+        seen_at: dict[int, int] = {}  # channel id -> offset of a message index naming it
         for segment in self._segments:
             if segment.message_index_length == 0:
                 return self._topics_from_scan()
@@ -612,14 +661,26 @@ class ArchiveReader:
                         channel_id, size = struct.unpack_from("<HI", data, pos + 9)
                         entries = np.frombuffer(data, "<u8", size // 8, pos + 15)
                         times.setdefault(channel_id, []).append(entries[0::2])
+                        seen_at.setdefault(channel_id, segment.message_index_offset + pos)
                     pos += 9 + length
             except (ValueError, struct.error) as error:
-                raise self._error(f"damaged message index ({error})") from None
+                where = f"message index at offset {segment.message_index_offset}"
+                if not self.salvage:
+                    raise self._error(f"damaged {where} ({error})") from None
+                self.warnings.append(f"{self.path.name}: damaged {where} ({error}); scanning")
+                return self._topics_from_scan()
         info: dict[str, TopicInfo] = {}
         for channel_id, parts in times.items():
             channel = self._channels.get(channel_id)
             if channel is None:
-                raise self._error(f"message index names unknown channel {channel_id}")
+                what = (
+                    f"the message index at offset {seen_at[channel_id]} names unknown "
+                    f"channel {channel_id}"
+                )
+                if not self.salvage:
+                    raise self._error(what)
+                self.warnings.append(f"{self.path.name}: {what}; scanning")
+                return self._topics_from_scan()
             all_times = np.concatenate(parts)
             if all_times.size:
                 info[channel.topic] = TopicInfo(
@@ -670,14 +731,14 @@ class ArchiveReader:
         for offset, length in self._metadata_offsets:
             try:
                 data = self._read_at(offset, length)
-                if data[0] != rec.OP_METADATA:
+                if not data or data[0] != rec.OP_METADATA:
                     raise ValueError(f"no Metadata record at offset {offset}")
                 fields = _Fields(data, 9)
                 name = fields.string()
                 result.setdefault(name, {}).update(fields.str_map())
             except (ValueError, UnicodeDecodeError, struct.error) as error:
                 if not self.salvage:
-                    raise self._error(f"damaged metadata ({error})") from None
+                    raise self._error(f"damaged metadata at offset {offset} ({error})") from None
                 self._skip(offset, length, f"damaged metadata: {error}")
         return result
 

@@ -23,6 +23,7 @@ comment with the unit of each key and reload with any YAML parser.
 from __future__ import annotations
 
 import math
+import reprlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,27 +104,65 @@ def _load_yaml_mapping(path: Path) -> dict[str, Any]:
     # OpenCV's FileStorage writes a "%YAML:1.0" directive PyYAML rejects; it adds nothing.
     if text.startswith("%YAML:"):
         text = text.split("\n", 1)[1] if "\n" in text else ""
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise InputError(f"{path}: not valid YAML ({error})") from None
+    data = safe_load_yaml(text, path)
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a YAML mapping at the top level")
     return data
+
+
+# Values quoted in error messages are shortened: YAML aliases can make a tiny file hold
+# a tree whose full repr is gigabytes (the "billion laughs" of YAML).
+_SHORT = reprlib.Repr()
+_SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxdict = 3, 6, 6
+_SHORT.maxstring, _SHORT.maxother, _SHORT.maxlong = 60, 60, 40
+
+
+def _show(value: Any) -> str:
+    """A bounded repr of a value read from YAML, for error messages."""
+    return _SHORT.repr(value)
+
+
+MAX_FLOW_NESTING = 64
+
+
+def safe_load_yaml(text: str, path: Path) -> Any:
+    """`yaml.safe_load` for files from outside; InputError naming `path` when malformed.
+
+    Flow collections ("[[[[...") nested deeper than `MAX_FLOW_NESTING` are refused
+    before parsing: PyYAML parses them recursively, and a 100 kB file of brackets
+    takes seconds to end in a RecursionError (libyaml's C loader crashes outright).
+    Calibration files nest three levels.
+    """
+    depth = 0
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        for char in line.split("#", 1)[0]:
+            if char in "[{":
+                depth += 1
+                if depth > MAX_FLOW_NESTING:
+                    raise InputError(
+                        f"{path}:{line_no}: not valid YAML (collections nested deeper than "
+                        f"{MAX_FLOW_NESTING} levels)"
+                    )
+            elif char in "]}":
+                depth -= 1
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise InputError(f"{path}: not valid YAML ({error})") from None
+    except RecursionError:
+        raise InputError(f"{path}: not valid YAML (nested too deeply)") from None
 
 
 def _number(value: Any) -> float | None:
     # PyYAML reads "1e-05" (no dot) as a string; other writers produce it, so accept it.
     if isinstance(value, bool):
         return None
-    if isinstance(value, int | float):
-        number = float(value)
-    elif isinstance(value, str):
-        try:
+    try:
+        if isinstance(value, int | float | str):
             number = float(value)
-        except ValueError:
+        else:
             return None
-    else:
+    except (ValueError, OverflowError):  # not a number, or an integer beyond float range
         return None
     return number if math.isfinite(number) else None
 
@@ -142,7 +181,7 @@ def _require_number(data: Mapping[str, Any], key: str, where: str, what: str) ->
         raise InputError(f"{where}: missing '{key}' ({what})")
     number = _number(data[key])
     if number is None:
-        raise InputError(f"{where}: expected '{key}' as a number ({what}), got {data[key]!r}")
+        raise InputError(f"{where}: expected '{key}' as a number ({what}), got {_show(data[key])}")
     return number
 
 
@@ -151,7 +190,7 @@ def _require_str(data: Mapping[str, Any], key: str, where: str) -> str:
         raise InputError(f"{where}: missing '{key}'")
     value = data[key]
     if not isinstance(value, str):
-        raise InputError(f"{where}: expected '{key}' as a string, got {value!r}")
+        raise InputError(f"{where}: expected '{key}' as a string, got {_show(value)}")
     return value
 
 
@@ -162,9 +201,9 @@ def _matrix4(value: Any, key: str, where: str) -> FloatArray:
         raise InputError(f"{where}: expected '{key}' as 4 rows of 4 numbers")
     matrix = np.array(parsed, dtype=np.float64)
     rotation = matrix[:3, :3]
-    if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9) or not np.allclose(
-        rotation.T @ rotation, np.eye(3), atol=_ORTHONORMAL_TOL
-    ):
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: refused just below
+        orthonormal = np.allclose(rotation.T @ rotation, np.eye(3), atol=_ORTHONORMAL_TOL)
+    if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9) or not orthonormal:
         raise InputError(
             f"{where}: expected '{key}' as a rigid transform "
             "(orthonormal rotation, last row [0, 0, 0, 1])"
@@ -176,7 +215,8 @@ def _matrix4(value: Any, key: str, where: str) -> FloatArray:
 
 def _camera_sort_key(name: str) -> tuple[int, str]:
     digits = name[3:] if name.startswith("cam") else ""
-    return (int(digits), name) if digits.isdigit() else (1 << 30, name)
+    # isascii: "cam²" passes isdigit() but int() refuses it.
+    return (int(digits), name) if digits.isascii() and digits.isdigit() else (1 << 30, name)
 
 
 # ------------------------------------------------------------------------------- writing helpers
@@ -418,7 +458,9 @@ def read_target_yaml(path: Path | str) -> AprilGridTarget:
         value = data[key]
         minimum = 0 if key == "tagIdOffset" else 1
         if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-            raise InputError(f"{where}: expected '{key}' as an integer >= {minimum}, got {value!r}")
+            raise InputError(
+                f"{where}: expected '{key}' as an integer >= {minimum}, got {_show(value)}"
+            )
         counts[key] = value
     tag_size = _require_number(data, "tagSize", where, "edge of the tag's black square, metres")
     spacing = _require_number(data, "tagSpacing", where, "gap between tags / tagSize")
@@ -433,7 +475,7 @@ def read_target_yaml(path: Path | str) -> AprilGridTarget:
             tag_id_offset=counts["tagIdOffset"],
         )
     except ValueError as error:
-        raise InputError(f"{where}: {error}") from None
+        raise InputError(f"{where}: 'tagRows', 'tagCols', 'tagIdOffset': {error}") from None
 
 
 def format_target_yaml(target: AprilGridTarget) -> str:

@@ -19,6 +19,7 @@ existing dive CSV. `read_dive_folder` and `read_profile` read them back.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import math
@@ -155,9 +156,17 @@ def read_dive_csv_arrays(
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError(f"{path}: no such dive CSV") from None
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not UTF-8 text (expected a dive CSV)") from None
-    rows = list(csv.reader(io.StringIO(text)))
+    except UnicodeDecodeError as error:
+        raise InputError(
+            f"{path}: not UTF-8 text at byte {error.start} (expected a dive CSV)"
+        ) from None
+    except OSError as error:  # a folder, no permission...
+        raise InputError(f"{path}: cannot read ({error.strerror})") from None
+    reader = csv.reader(io.StringIO(text))
+    try:
+        rows = list(reader)
+    except csv.Error as error:  # a cell beyond the csv module's field size limit, for example
+        raise InputError(f"{path}:{reader.line_num}: not a valid CSV line ({error})") from None
     if not rows or tuple(cell.strip() for cell in rows[0]) != CSV_HEADER:
         found = ",".join(rows[0]) if rows else "an empty file"
         raise InputError(f"{path}:1: expected the header {','.join(CSV_HEADER)}, found {found}")
@@ -172,6 +181,11 @@ def read_dive_csv_arrays(
         stamp = _parse_cell(path, line_no, "timestamp_s", row[0])
         if math.isnan(stamp):
             raise InputError(f"{path}:{line_no}: timestamp_s is empty (every sample needs one)")
+        if not _MIN_STAMP_S <= stamp <= _MAX_STAMP_S:
+            raise InputError(
+                f"{path}:{line_no}: timestamp_s {stamp} is not a date (expected seconds since "
+                "1970 between years 1 and 9999)"
+            )
         if stamps and stamp < stamps[-1]:
             raise InputError(
                 f"{path}:{line_no}: timestamp_s {stamp} goes backwards (previous {stamps[-1]})"
@@ -244,17 +258,35 @@ def _profile_from_entry(
 
 
 _REQUIRED_KEYS = ("csv", "start")
+# Seconds of 0001-01-01 and 9999-12-31 (UTC): the range `stamp_s_to_iso` can print.
+_MIN_STAMP_S = -62_135_596_800.0
+_MAX_STAMP_S = 253_402_300_799.0
+
+
+def _is_number_or_none(value: Any) -> bool:
+    if value is None:
+        return True
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer beyond float range
+        return False
 
 
 def _read_index(index_path: Path) -> list[dict[str, Any]]:
     try:
         document = json.loads(index_path.read_text(encoding="utf-8"))
+    except RecursionError:
+        raise InputError(f"{index_path}: not valid JSON (nested too deeply)") from None
     except json.JSONDecodeError as error:
         raise InputError(
             f"{index_path}:{error.lineno}: not valid JSON ({error.msg}; expected the dive index)"
         ) from None
-    except UnicodeDecodeError:
-        raise InputError(f"{index_path}: not UTF-8 text (expected the dive index)") from None
+    except UnicodeDecodeError as error:
+        raise InputError(
+            f"{index_path}: not UTF-8 text at byte {error.start} (expected the dive index)"
+        ) from None
     if not isinstance(document, dict) or not isinstance(document.get("dives"), list):
         raise InputError(f"{index_path}: expected an object with a 'dives' list")
     dives: list[dict[str, Any]] = []
@@ -265,16 +297,20 @@ def _read_index(index_path: Path) -> list[dict[str, Any]]:
             if not isinstance(entry.get(key), str):
                 raise InputError(f"{index_path}: dives[{number}] has no '{key}' string")
         name = entry["csv"]
-        if Path(name).name != name:
+        if Path(name).name != name or name in ("", ".", ".."):
             raise InputError(
                 f"{index_path}: dives[{number}].csv {name!r} must be a file name in the folder"
             )
         try:
             iso_to_stamp_s(entry["start"])
-        except ValueError:
+        except (ValueError, OverflowError):
             raise InputError(
-                f"{index_path}: dives[{number}].start {entry['start']!r} is not ISO 8601"
+                f"{index_path}: dives[{number}].start {entry['start'][:80]!r} is not ISO 8601"
             ) from None
+        if not _is_number_or_none(entry.get("sample_interval_s")):
+            raise InputError(
+                f"{index_path}: dives[{number}].sample_interval_s is not a number or null"
+            )
         dives.append(entry)
     return dives
 
@@ -320,13 +356,19 @@ def read_profile(path: Path | str) -> DiveProfile:
 
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
+_MAX_FINGERPRINT_CHARS = 64
 
 
 def dive_file_stem(profile: DiveProfile) -> str:
     """`<start>_<fingerprint>`, e.g. `2023-11-15T221320_65554280` (safe on every filesystem)."""
     start = profile.start_iso.replace(":", "").replace(" ", "T")
     fingerprint = _UNSAFE.sub("-", profile.fingerprint) or "nofp"
-    return f"{_UNSAFE.sub('-', start)}_{fingerprint}"
+    if len(fingerprint) > _MAX_FINGERPRINT_CHARS:
+        # A logbook may use any text as a dive id; file names stop at 255 bytes. The
+        # digest keeps two long ids that share a prefix apart (the index keeps the full id).
+        digest = hashlib.sha1(profile.fingerprint.encode("utf-8")).hexdigest()[:8]
+        fingerprint = f"{fingerprint[: _MAX_FINGERPRINT_CHARS - 9]}-{digest}"
+    return f"{_UNSAFE.sub('-', start)[:40]}_{fingerprint}"
 
 
 def _json_number(value: float | None) -> float | None:

@@ -34,11 +34,15 @@ from types import TracebackType
 from typing import IO, Any
 
 import numpy as np
-import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from shared.calibration.cameras import CAMERA_MODELS
-from shared.calibration.kalibr import CameraCalibration, ImuNoise, format_yaml_float
+from shared.calibration.kalibr import (
+    CameraCalibration,
+    ImuNoise,
+    format_yaml_float,
+    safe_load_yaml,
+)
 from shared.errors import InputError
 from shared.fsutil import atomic_path
 from shared.geometry import invert_pose, make_pose, matrix_from_quat_wxyz, quat_wxyz_from_matrix
@@ -61,6 +65,8 @@ GROUNDTRUTH_HEADER = (
 )
 
 # EuRoC spells Kalibr's "radtan" as "radial-tangential"; both are accepted on reading.
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+
 _DISTORTION_NAMES = {
     "radial-tangential": "radtan",
     "radtan": "radtan",
@@ -396,6 +402,8 @@ def _read_numeric_csv(
             ) from None
         if not all(math.isfinite(v) for v in values):
             raise InputError(f"{path}: line {number}: non-finite value")
+        if not _INT64_MIN <= stamp <= _INT64_MAX:
+            raise InputError(f"{path}: line {number}: time stamp {fields[0]} ns outside int64")
         if stamps and stamp <= stamps[-1]:
             raise InputError(
                 f"{path}: line {number}: time stamp {stamp} ns not after {stamps[-1]} ns"
@@ -415,17 +423,27 @@ def _read_camera_csv(path: Path) -> tuple[IntArray, list[Path]]:
         if not text or text.startswith("#"):
             continue
         fields = [f.strip() for f in text.split(",")]
-        if len(fields) != 2 or not fields[0].lstrip("-").isdigit() or not fields[1]:
+        digits = fields[0].removeprefix("-")
+        # isascii: "²" passes isdigit() but int() refuses it.
+        if len(fields) != 2 or not (digits.isascii() and digits.isdigit()) or not fields[1]:
             raise InputError(
-                f"{path}: line {number}: expected 'timestamp [ns],filename', got {text!r}"
+                f"{path}: line {number}: expected 'timestamp [ns],filename', got {text[:200]!r}"
             )
         stamp = int(fields[0])
+        if not _INT64_MIN <= stamp <= _INT64_MAX:
+            raise InputError(f"{path}: line {number}: time stamp {fields[0]} ns outside int64")
         if stamps and stamp <= stamps[-1]:
             raise InputError(
                 f"{path}: line {number}: time stamp {stamp} ns not after {stamps[-1]} ns"
             )
         image = data_folder / fields[1]
-        if not image.is_file():
+        try:
+            present = image.is_file()
+        except OSError as error:  # a name too long for the file system, for example
+            raise InputError(
+                f"{path}: line {number}: image name {fields[1][:80]!r} unusable ({error.strerror})"
+            ) from None
+        if not present:
             raise InputError(f"{path}: line {number}: image {fields[1]} missing from {data_folder}")
         stamps.append(stamp)
         paths.append(image)
@@ -440,12 +458,9 @@ def _load_yaml(path: Path) -> dict[str, Any]:
     # EuRoC's own files start with OpenCV's "%YAML:1.0" directive, which PyYAML rejects.
     if text.startswith("%YAML:"):
         text = text.split("\n", 1)[1] if "\n" in text else ""
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise InputError(f"{path}: not valid YAML ({error})") from None
+    data = safe_load_yaml(text, path)
     if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a YAML mapping")
+        raise InputError(f"{path}: expected a YAML mapping at the top level")
     return data
 
 
@@ -455,7 +470,7 @@ def _yaml_numbers(data: dict[str, Any], key: str, count: int, path: Path, what: 
         raise InputError(f"{path}: expected '{key}' as {count} numbers ({what})")
     try:
         numbers = [float(v) for v in value]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float range
         raise InputError(f"{path}: expected '{key}' as {count} numbers ({what})") from None
     if any(isinstance(v, bool) for v in value) or not all(math.isfinite(v) for v in numbers):
         raise InputError(f"{path}: expected '{key}' as {count} numbers ({what})")
@@ -470,9 +485,9 @@ def _read_body_from_sensor(data: dict[str, Any], path: Path) -> FloatArray:
     numbers = _yaml_numbers({"data": values}, "data", 16, path, "T_BS row-major 4x4")
     matrix = np.array(numbers, dtype=np.float64).reshape(4, 4)
     rotation = matrix[:3, :3]
-    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-4) or not np.allclose(
-        matrix[3], [0, 0, 0, 1]
-    ):
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: refused just below
+        orthonormal = np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-4)
+    if not orthonormal or not np.allclose(matrix[3], [0, 0, 0, 1]):
         raise InputError(f"{path}: 'T_BS' is not a rigid transform")
     return matrix
 
@@ -510,7 +525,10 @@ def _read_camera_yaml(path: Path, imu_T_BS: FloatArray) -> CameraCalibration:
         calibration.topic = topic
     shift = data.get("timeshift_cam_imu")
     if isinstance(shift, int | float) and not isinstance(shift, bool):
-        calibration.timeshift_cam_imu_s = float(shift)
+        try:
+            calibration.timeshift_cam_imu_s = float(shift)
+        except OverflowError:
+            raise InputError(f"{path}: 'timeshift_cam_imu' {shift} is out of range") from None
     return calibration
 
 
@@ -533,7 +551,15 @@ def _read_imu_yaml(path: Path) -> tuple[FloatArray, ImuNoise | None]:
         if isinstance(value, str):
             with contextlib.suppress(ValueError):
                 value = float(value)
-        if not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
+        if isinstance(value, int) and not isinstance(value, bool):
+            # An integer beyond float range would overflow float(); NaN is refused below.
+            value = float(value) if abs(value) < 2**1023 else math.nan
+        if (
+            not isinstance(value, int | float)
+            or isinstance(value, bool)
+            or not math.isfinite(value)
+            or value < 0
+        ):
             raise InputError(f"{path}: expected '{key}' as a non-negative number")
         values[key] = float(value)
     topic = data.get("rostopic")
@@ -587,10 +613,15 @@ def read_euroc(folder: Path | str) -> EurocDataset:
             "timestamp, p xyz, q wxyz[, v xyz, gyro bias xyz, accel bias xyz]",
             min_columns=7,
         )
-        norms = np.linalg.norm(values[:, 3:7], axis=1)
-        if np.any(norms < 1e-6):
-            bad = int(np.argmax(norms < 1e-6))
-            raise InputError(f"{groundtruth_csv}: data row {bad + 1}: zero quaternion")
+        with np.errstate(over="ignore"):  # 1e308 squared: an infinite norm, refused below
+            norms = np.linalg.norm(values[:, 3:7], axis=1)
+        unusable = ~np.isfinite(norms) | (norms < 1e-6)
+        if np.any(unusable):
+            bad = int(np.argmax(unusable))
+            raise InputError(
+                f"{groundtruth_csv}: data row {bad + 1}: "
+                "zero quaternion (or too large to normalise)"
+            )
         poses = make_pose(matrix_from_quat_wxyz(values[:, 3:7]), values[:, :3])
         dataset.groundtruth = Trajectory(stamps_ns=stamps, poses=poses)
         # Velocities and biases only when the file carries all 16 values a row.

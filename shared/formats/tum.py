@@ -26,6 +26,7 @@ from shared.trajectory import Trajectory
 
 _FIELDS = "timestamp tx ty tz qx qy qz qw"
 _NS_PER_S = 1_000_000_000
+_MAX_STAMP_S = Decimal(2**63) / _NS_PER_S
 
 
 def _parse_stamp_ns(text: str) -> int:
@@ -33,7 +34,15 @@ def _parse_stamp_ns(text: str) -> int:
     value = Decimal(text)  # exact decimal of the digits, no float on the way
     if not value.is_finite():
         raise ValueError(f"non-finite timestamp {text!r}")
-    return int((value * _NS_PER_S).quantize(Decimal(1), rounding=ROUND_HALF_EVEN))
+    # Checked before scaling: "1e999999999" would overflow the decimal context, and
+    # anything beyond int64 nanoseconds (year 2262) cannot be stored.
+    # (adjusted() is the decimal exponent, read without the context that abs() would apply.)
+    if value.adjusted() > 12 or value.copy_abs() > _MAX_STAMP_S:
+        raise ValueError(f"timestamp {text!r} beyond the int64 nanosecond range")
+    stamp_ns = int((value * _NS_PER_S).quantize(Decimal(1), rounding=ROUND_HALF_EVEN))
+    if not -(2**63) <= stamp_ns < 2**63:
+        raise ValueError(f"timestamp {text!r} beyond the int64 nanosecond range")
+    return stamp_ns
 
 
 def format_stamp_ns(stamp_ns: int) -> str:
@@ -73,8 +82,11 @@ def read_tum(path: Path | str) -> Trajectory:
             raise InputError(f"{where}: expected 8 numbers ({_FIELDS}), found {line!r}") from exc
         if not all(math.isfinite(v) for v in values):
             raise InputError(f"{where}: non-finite value in {line!r}")
-        if math.sqrt(sum(v * v for v in values[3:])) < 1e-6:
+        if math.hypot(*values[3:]) < 1e-6:
             raise InputError(f"{where}: zero quaternion (expected a unit quaternion qx qy qz qw)")
+        # Divided by its largest component first: squaring 1e200 would overflow the norm.
+        largest = max(abs(v) for v in values[3:])
+        values[3:] = [v / largest for v in values[3:]]
         if stamps and stamp_ns <= stamps[-1]:
             raise InputError(
                 f"{where}: timestamp {fields[0]} is not after the previous line's "

@@ -82,7 +82,7 @@ def make_profile(
     """A DiveProfile from sample offsets (seconds after the start) on the dive's clock."""
     try:
         start_s = iso_to_stamp_s(start_iso)
-    except ValueError:
+    except (ValueError, OverflowError):
         raise InputError(f"{where}: start time {start_iso!r} is not ISO 8601") from None
     order = np.argsort(np.asarray(offsets_s, dtype=np.float64), kind="stable")
     offsets = np.asarray(offsets_s, dtype=np.float64)[order]
@@ -106,6 +106,6 @@ def make_profile(
 
 def kelvin_to_c(kelvin: float) -> float:
     # UDDF stores kelvin; go through millikelvin as Subsurface does, so 283.15 K is 10.0.
-    if math.isnan(kelvin):
-        return math.nan
+    if not math.isfinite(kelvin):  # NaN stays NaN; round() cannot take an infinity
+        return kelvin if math.isnan(kelvin) else kelvin - 273.15
     return (round(kelvin * 1000.0) - 273_150) / 1000.0

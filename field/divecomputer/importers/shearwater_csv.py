@@ -59,9 +59,17 @@ def read_shearwater_csv(path: Path) -> list[DiveProfile]:
     """The one dive of a Shearwater Cloud CSV export."""
     try:
         text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not UTF-8 text (expected a Shearwater Cloud CSV)") from None
-    rows = list(csv.reader(io.StringIO(text)))
+    except UnicodeDecodeError as error:
+        raise InputError(
+            f"{path}: not UTF-8 text at byte {error.start} (expected a Shearwater Cloud CSV)"
+        ) from None
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.strerror})") from None
+    reader = csv.reader(io.StringIO(text))
+    try:
+        rows = list(reader)
+    except csv.Error as error:  # a cell beyond the csv module's field size limit, for example
+        raise InputError(f"{path}:{reader.line_num}: not a valid CSV line ({error})") from None
     if len(rows) < 3 or "Start Date" not in [c.strip() for c in rows[0]]:
         raise InputError(
             f"{path}:1: not a Shearwater Cloud CSV (expected a summary header with 'Start Date')"

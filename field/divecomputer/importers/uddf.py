@@ -19,7 +19,7 @@ from field.divecomputer.importers.common import (
     start_fingerprint,
 )
 from shared.errors import InputError
-from shared.formats.diveprofile import DiveProfile
+from shared.formats.diveprofile import DiveProfile, iso_to_stamp_s
 
 
 def _children(element: Any, name: str) -> list[Any]:
@@ -83,6 +83,12 @@ def read_uddf(path: Path) -> list[DiveProfile]:
         if datetime_text is None:
             raise InputError(f"{where}: no informationbeforedive/datetime")
         start_iso = _iso_wall_clock(datetime_text, where)
+        try:
+            iso_to_stamp_s(start_iso)  # checked here: the Shearwater fingerprint needs it
+        except (ValueError, OverflowError):
+            raise InputError(
+                f"{where}: informationbeforedive/datetime {datetime_text[:80]!r} is not ISO 8601"
+            ) from None
         model, serial = generator, ""
         if before is not None:
             used = _child(before, "equipmentused")

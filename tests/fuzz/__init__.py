@@ -1,0 +1,1 @@
+"""Fuzz and property tests of every parser (issue 14)."""
