@@ -623,8 +623,17 @@ class ArchiveReader:
                 else:
                     decoders[channel_id] = (decoder, f"{self.path.name} {channel.topic}")
             entry = decoders[channel_id]
-            if entry is not None:
-                yield channel.topic, log_time, entry[0](data, entry[1])
+            if entry is None:
+                continue
+            try:
+                message = entry[0](data, entry[1])
+            except InputError as error:
+                if not self.salvage:
+                    raise
+                # Salvage gives back everything valid: a damaged message is skipped, and said.
+                self.warnings.append(f"skipped a message at log time {log_time} ns: {error}")
+                continue
+            yield channel.topic, log_time, message
 
     def raw_messages(
         self,
@@ -760,7 +769,24 @@ class ArchiveReader:
         if not payloads and topic not in {c.topic for c in self._channels.values()}:
             names = ", ".join(sorted({c.topic for c in self._channels.values()})) or "none"
             raise self._error(f"no topic {topic!r} (topics: {names})")
-        arrays = decode_imu_batch(payloads, f"{self.path.name} {topic}")
+        name = f"{self.path.name} {topic}"
+        try:
+            arrays = decode_imu_batch(payloads, name)
+        except InputError:
+            if not self.salvage:
+                raise
+            good = []
+            for index, payload in enumerate(payloads):
+                try:
+                    decode_imu_batch([payload], name)
+                except InputError as error:
+                    self.warnings.append(
+                        f"skipped a message at log time {log_times[index]} ns: {error}"
+                    )
+                else:
+                    good.append(index)
+            log_times = [log_times[i] for i in good]
+            arrays = decode_imu_batch([payloads[i] for i in good], name)
         return ImuSeries(
             topic=topic,
             stamps_ns=arrays.stamps_ns,

@@ -243,3 +243,27 @@ def test_without_lz4_installed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) 
         ArchiveWriter(tmp_path / "other.mcap", compression="lz4")
     with ArchiveReader(path) as reader, pytest.raises(InputError, match="lz4, which is not"):
         list(reader.messages())
+
+
+def test_damaged_message_is_skipped_only_on_salvage(tmp_path: Path) -> None:
+    """A message whose CDR is damaged (chunk intact) is skipped and reported on salvage."""
+    path = tmp_path / "rec.mcap"
+    messages = stream(40)
+    bad_stamp = messages[5][1].stamp_ns
+    with ArchiveWriter(path, metadata={"site": "wreck"}) as writer:
+        for topic, message in messages:
+            if message.stamp_ns == bad_stamp and topic == imu_topic(0):
+                damaged = cdr.encode(message)[:20]  # cut short: the chunk itself is intact
+                writer.write_cdr(topic, damaged, log_time_ns=bad_stamp)
+            else:
+                writer.write(topic, message)
+    imu_count = sum(1 for topic, _ in messages if topic == imu_topic(0))
+    with ArchiveReader(path) as reader, pytest.raises(InputError, match="truncated"):
+        list(reader.messages())
+    with ArchiveReader(path, salvage=True) as reader:
+        kept = [m for t, _, m in reader.messages() if t == imu_topic(0)]
+        series = reader.read_imu(imu_topic(0))
+        assert len(kept) == imu_count - 1
+        assert len(series.stamps_ns) == imu_count - 1
+        assert bad_stamp not in set(series.stamps_ns.tolist())
+        assert any("skipped a message" in w for w in reader.warnings)
