@@ -38,7 +38,9 @@ for the IMU samples.
                               clock (offset of hours plus seconds, drift up to +-50 ppm),
                               10 s samples, 0.1 m steps, descent and ascent around the filming
         gopro/GX010001.MP4    (unless --no-video) GoPro-like MP4: H.264 of the colour frames,
-                              GPMF ACCL/GYRO in the body axes (ORIN "XYZ"), media time 0 =
+                              GPMF ACCL/GYRO in GoPro axes (ORIN "ZXY", as Hero cameras
+                              write them; `gopro import` maps them back to the body frame
+                              of calib/camchain.yaml), media time 0 =
                               frame 0; an IMU sample's media time is its true time minus the
                               timeshift minus frame 0's camera stamp; creation time on the
                               GoPro's own clock

@@ -40,6 +40,8 @@ IntArray = npt.NDArray[np.int64]
 
 TRUTH_FORMAT = "wreckmap-sim-truth"
 TRUTH_VERSION = 1
+# The ORIN a HERO9 writes for ACCL/GYRO (value order of the IMU chip axes).
+GOPRO_IMU_AXIS_ORDER = "ZXY"
 
 # Random streams, one per purpose, so adding one never changes another.
 _RNG_MOTION, _RNG_IMU, _RNG_CLOCKS, _RNG_DIVE, _RNG_FRAME, _RNG_BIAS = range(1, 7)
@@ -374,7 +376,10 @@ class SurveySimulator:
                             ),
                             "media_time_zero_cam_ns": first_cam,
                             "imu_media_time": "t_imu_true - timeshift_ns - media_time_zero_cam_ns",
-                            "imu_axes": "body frame B of calib/camchain.yaml (as imu0)",
+                            "imu_axes": (
+                                f"GoPro IMU axes, ORIN {GOPRO_IMU_AXIS_ORDER!r}; after "
+                                "`gopro import`: body frame B of calib/camchain.yaml (as imu0)"
+                            ),
                         },
                     },
                     "files": {
@@ -510,8 +515,14 @@ def _rendered_frames(sim: SurveySimulator, session: int, workers: int, bar: Any)
 
 def _gopro_payloads(sim: SurveySimulator, session: int, imu: ImuSamples) -> list[bytes]:
     """One GPMF payload per second of media time (IMU samples on the camera clock)."""
+    from field.gopro.cameras import body_from_file_axes
     from field.gopro.writer import encode_gpmf_imu_payload
 
+    # A real camera stores ACCL/GYRO in its IMU chip's axes and says which in ORIN; the
+    # importer maps them to its camera-aligned body frame with `body_from_file_axes`.
+    # Write the values so that this mapping gives back the simulator's body frame B:
+    # the imported session then matches calib/camchain.yaml like the EuRoC copy does.
+    body_from_file = body_from_file_axes(GOPRO_IMU_AXIS_ORDER)
     truth = sim.sessions[session]
     fps = Fraction(sim.options.fps).limit_denominator(1001)
     per_s = Fraction(round(fps)) / fps
@@ -529,14 +540,14 @@ def _gopro_payloads(sim: SurveySimulator, session: int, imu: ImuSamples) -> list
         first_us = int(media_ns[pick[0]] // 1000) if len(pick) else int(lo // 1000)
         payloads.append(
             encode_gpmf_imu_payload(
-                accl_mps2=imu.accel_mps2[pick],
-                gyro_rads=imu.gyro_radps[pick],
+                accl_mps2=imu.accel_mps2[pick] @ body_from_file,
+                gyro_rads=imu.gyro_radps[pick] @ body_from_file,
                 accl_first_us=first_us,
                 gyro_first_us=first_us,
                 accl_total_before=total,
                 gyro_total_before=total,
-                orientation_in="XYZ",
-                orientation_out="XYZ",
+                orientation_in=GOPRO_IMU_AXIS_ORDER,
+                orientation_out=GOPRO_IMU_AXIS_ORDER,
             )
         )
         total += len(pick)

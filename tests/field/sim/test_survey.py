@@ -42,6 +42,7 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_layout_and_truth(survey: Path) -> None:
+    from field.gopro.cameras import body_from_file_axes
     from field.gopro.telemetry import read_telemetry
     from shared.calibration.kalibr import read_camchain, read_target_yaml
     from shared.formats.diveprofile import read_dive_folder
@@ -83,7 +84,9 @@ def test_layout_and_truth(survey: Path) -> None:
         first_true = accl.times_ns[0] + session["first_frame_cam_ns"] + sim.timeshift_ns
         index = np.searchsorted(data.imu_stamps_ns, first_true)
         assert abs(int(data.imu_stamps_ns[index]) - int(first_true)) < 1000
-        np.testing.assert_allclose(accl.values[:50], data.accel_m_s2[index : index + 50], atol=0.01)
+        # The file holds GoPro axes (ORIN), as a camera writes them; mapped back they are B's.
+        body = accl.values[:50] @ body_from_file_axes(accl.orientation_in or "").T
+        np.testing.assert_allclose(body, data.accel_m_s2[index : index + 50], atol=0.01)
 
 
 def test_same_seed_same_bytes(tmp_path: Path, survey: Path) -> None:
