@@ -20,7 +20,9 @@ COMMAND_MODULES: tuple[str, ...] = (
     "postproc.commands.slam",
     "postproc.commands.depth",
     "postproc.commands.merge",
+    "postproc.commands.sfm",
     "postproc.commands.dense",
+    "postproc.commands.run",
 )
 
 

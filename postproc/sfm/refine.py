@@ -1,0 +1,510 @@
+"""Triangulate with the prior poses, then bundle-adjust with pose priors (pycolmap, CPU).
+
+The reconstruction is seeded with every placed keyframe at its prior pose
+`T_W_C` (frames registered as they are), points are triangulated from the
+verified matches, and rounds of COLMAP's iterative global refinement follow
+(complete and merge tracks, retriangulate, global bundle adjustment with a
+position prior on every keyframe, filter observations) until 95 % of the
+cameras move less than `converged_change_m` in a round. The position priors keep the
+metric scale and the world frame; without them the gauge would float.
+
+Triangulation thresholds are wider than COLMAP's defaults (2 degrees): with
+drifting priors, the rays of one point seen from two ends of a loop miss each
+other by the drift over the viewing distance (0.2 m at 2 m is about 6
+degrees), and default thresholds break such tracks instead of closing the
+loop. The filters after each adjustment run at the usual 4 px.
+
+Sessions without a world pose (no shared target in the merge) are tied in
+where natural features allow: their keyframes are registered one by one by
+absolute pose estimation against the model (COLMAP's incremental
+registration), the session's `T_W_S` is fitted to the registered keyframes,
+and a second refinement runs with every session placed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from postproc.sfm.database import (
+    KeyframeSet,
+    pose_from_rigid3d,
+    pose_prior,
+    rigid3d_from_pose,
+)
+from shared.errors import StageError
+from shared.geometry import invert_pose, make_pose, umeyama
+
+if TYPE_CHECKING:
+    import pycolmap
+
+FloatArray = npt.NDArray[np.float64]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class RefineOptions:
+    """How the prior poses are refined.
+
+    triangulation_max_angle_deg: largest ray angle error to create or continue a track
+        (COLMAP default 2; widened for drifting priors).
+    merge_max_reproj_error_px: reprojection error to merge or complete tracks, pixels.
+    filter_max_reproj_error_px: observations above this error after an adjustment are
+        dropped, pixels. filter_min_tri_angle_deg: points seen under a smaller angle too.
+    max_rounds: refinement rounds at most. converged_change_m: stop when 95 % of the
+        camera centres moved less than this in a round, metres.
+    skip_redundant_points: adjust first without the 3D points that add little image
+        coverage, then those points alone (COLMAP's option for large adjustments).
+    redundant_min_coverage_gain: the image coverage a point must add to stay in the joint
+        adjustment (COLMAP's default 0.05; larger drops more points).
+    ignore_two_view_tracks: do not create points seen by two keyframes only (weak and
+        numerous; COLMAP's default).
+    ba_gradient_tolerance, ba_function_tolerance, ba_max_iterations: Ceres stopping rules
+        of each adjustment (COLMAP's global-BA defaults).
+    robust_prior_loss: Cauchy loss on the position priors (a few wrong priors then
+        cannot pull the model). refine_intrinsics: also adjust focal length and
+        distortion (off: the cameras are calibrated).
+    min_num_matches: pairs with fewer inlier matches are ignored.
+    min_registered_for_placement: keyframes of an unplaced session that must register
+        before its `T_W_S` is fitted.
+    mapper: "prior" (triangulate + BA from the priors), "incremental" (COLMAP's
+        incremental mapper with pose priors, from scratch), or "auto" (prior, and the
+        incremental mapper when fewer than `min_registered_fraction` of the placed
+        keyframes end up in the model).
+    num_threads: solver threads (-1: all cores). random_seed: for RANSAC (-1: random).
+    """
+
+    triangulation_max_angle_deg: float = 8.0
+    merge_max_reproj_error_px: float = 8.0
+    filter_max_reproj_error_px: float = 4.0
+    filter_min_tri_angle_deg: float = 1.5
+    max_rounds: int = 6
+    converged_change_m: float = 0.01
+    skip_redundant_points: bool = True
+    redundant_min_coverage_gain: float = 0.05
+    ignore_two_view_tracks: bool = True
+    ba_gradient_tolerance: float = 1.0
+    ba_function_tolerance: float = 0.0
+    ba_max_iterations: int = 50
+    robust_prior_loss: bool = True
+    refine_intrinsics: bool = False
+    min_num_matches: int = 15
+    min_registered_for_placement: int = 5
+    mapper: Literal["prior", "incremental", "auto"] = "auto"
+    min_registered_fraction: float = 0.5
+    num_threads: int = -1
+    random_seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.mapper not in ("prior", "incremental", "auto"):
+            raise ValueError(
+                f"mapper must be 'prior', 'incremental' or 'auto', got {self.mapper!r}"
+            )
+        if self.max_rounds < 1:
+            raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds}")
+        if self.triangulation_max_angle_deg <= 0 or self.filter_max_reproj_error_px <= 0:
+            raise ValueError("triangulation and filter thresholds must be positive")
+
+
+@dataclass
+class RefineResult:
+    """The refined model and what happened.
+
+    world_from_cam: refined `T_W_C` (4, 4) of every keyframe in the model, by image name.
+    world_from_session: `T_W_S` fitted for sessions that were not placed and could be
+        tied in, by session index. rounds: one record per refinement round (seconds,
+        largest camera move in metres, points, mean reprojection error in pixels).
+    mapper: which mapper produced the model ("prior" or "incremental").
+    """
+
+    reconstruction: Any
+    world_from_cam: dict[str, FloatArray]
+    world_from_session: dict[int, FloatArray] = field(default_factory=dict)
+    rounds: list[dict[str, float]] = field(default_factory=list)
+    mapper: str = "prior"
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def _pipeline_options(
+    options: RefineOptions, *, use_priors: bool
+) -> pycolmap.IncrementalPipelineOptions:
+    import pycolmap
+
+    pipeline = pycolmap.IncrementalPipelineOptions()
+    pipeline.use_prior_position = use_priors
+    pipeline.use_robust_loss_on_prior_position = options.robust_prior_loss
+    pipeline.ba_refine_focal_length = options.refine_intrinsics
+    pipeline.ba_refine_extra_params = options.refine_intrinsics
+    pipeline.ba_refine_principal_point = False
+    pipeline.min_num_matches = options.min_num_matches
+    pipeline.num_threads = options.num_threads
+    pipeline.random_seed = options.random_seed
+    pipeline.extract_colors = False
+    pipeline.mapper.filter_max_reproj_error = options.filter_max_reproj_error_px
+    pipeline.mapper.filter_min_tri_angle = options.filter_min_tri_angle_deg
+    # Solve first without the points that add little coverage, then those alone.
+    pipeline.mapper.ba_global_ignore_redundant_points3D = options.skip_redundant_points
+    pipeline.mapper.ba_global_prune_points_min_coverage_gain = options.redundant_min_coverage_gain
+    tri = pipeline.triangulation
+    tri.create_max_angle_error = options.triangulation_max_angle_deg
+    tri.continue_max_angle_error = options.triangulation_max_angle_deg
+    tri.re_max_angle_error = max(options.triangulation_max_angle_deg, tri.re_max_angle_error)
+    tri.merge_max_reproj_error = options.merge_max_reproj_error_px
+    tri.complete_max_reproj_error = options.merge_max_reproj_error_px
+    tri.ignore_two_view_tracks = options.ignore_two_view_tracks
+    return pipeline
+
+
+def _load_cache(database_path: Path, options: RefineOptions) -> pycolmap.DatabaseCache:
+    import pycolmap
+
+    cache_options = pycolmap.DatabaseCacheOptions()
+    cache_options.min_num_matches = options.min_num_matches
+    cache_options.load_all_images = True
+    with pycolmap.Database.open(database_path) as db:
+        return pycolmap.DatabaseCache.create(db, cache_options)
+
+
+def camera_poses(reconstruction: pycolmap.Reconstruction) -> dict[str, FloatArray]:
+    """`T_W_C` of every image with a pose, by image name."""
+    poses: dict[str, FloatArray] = {}
+    for image in reconstruction.images.values():
+        if image.has_pose:
+            poses[image.name] = invert_pose(pose_from_rigid3d(image.cam_from_world()))
+    return poses
+
+
+def _seeded(
+    cache: pycolmap.DatabaseCache, world_from_cam: dict[str, FloatArray]
+) -> pycolmap.Reconstruction:
+    """All cached images, the given ones registered at their poses (trivial rigs)."""
+    import pycolmap
+
+    reconstruction = pycolmap.Reconstruction()
+    reconstruction.load(cache)
+    for image in reconstruction.images.values():
+        pose = world_from_cam.get(image.name)
+        if pose is None:
+            continue
+        frame = reconstruction.frame(image.frame_id)
+        frame.rig_from_world = rigid3d_from_pose(invert_pose(pose))
+        reconstruction.register_frame(image.frame_id)
+    return reconstruction
+
+
+def _camera_moves_m(before: dict[str, FloatArray], after: dict[str, FloatArray]) -> FloatArray:
+    """Distances (m) the centres of the cameras present in both moved."""
+    common = sorted(before.keys() & after.keys())
+    return np.array([float(np.linalg.norm(after[n][:3, 3] - before[n][:3, 3])) for n in common])
+
+
+class _Mapper:
+    """One pycolmap mapper over one database cache (both must live together)."""
+
+    def __init__(
+        self,
+        database_path: Path,
+        world_from_cam: dict[str, FloatArray],
+        options: RefineOptions,
+    ) -> None:
+        import pycolmap
+
+        self.options = options
+        self.cache = _load_cache(database_path, options)
+        self.reconstruction = _seeded(self.cache, world_from_cam)
+        if self.reconstruction.num_reg_frames() < 2:
+            raise StageError(
+                f"{database_path}: fewer than 2 keyframes with matches and a prior pose "
+                "(expected overlapping keyframes; check the images and the pair choice)"
+            )
+        self.pipeline = _pipeline_options(options, use_priors=True)
+        self.mapper_options = self.pipeline.get_mapper()
+        self.tri_options = self.pipeline.get_triangulation()
+        self.ba_options = self.pipeline.get_global_bundle_adjustment()
+        self.ba_options.print_summary = False
+        # COLMAP's global-BA stopping rules by default: solving to 1e-8 took twice as long
+        # and moved no camera by more than a millimetre on the simulated surveys.
+        solver = self.ba_options.ceres.solver_options
+        solver.gradient_tolerance = options.ba_gradient_tolerance
+        solver.function_tolerance = options.ba_function_tolerance
+        solver.max_num_iterations = options.ba_max_iterations
+        self.mapper = pycolmap.IncrementalMapper(self.cache)
+        self.mapper.begin_reconstruction(self.reconstruction)
+
+    def triangulate(self) -> int:
+        added = 0
+        for image_id in self.reconstruction.reg_image_ids():
+            added += self.mapper.triangulate_image(self.tri_options, image_id)
+        return added
+
+    def refine_rounds(self, rounds: list[dict[str, float]]) -> None:
+        """Rounds of (merge/complete tracks, retriangulate, BA with priors, filter) until
+        95 % of the camera centres move less than `converged_change_m`."""
+        for _ in range(self.options.max_rounds):
+            start = time.perf_counter()
+            before = camera_poses(self.reconstruction)
+            # COLMAP's iterative global refinement, one adjustment per round, spelled out so
+            # the convergence test is on the poses (COLMAP's counts changed observations).
+            t0 = time.perf_counter()
+            self.mapper.complete_and_merge_tracks(self.tri_options)
+            self.mapper.retriangulate(self.tri_options)
+            t1 = time.perf_counter()
+            self.mapper.adjust_global_bundle(self.mapper_options, self.ba_options)
+            t2 = time.perf_counter()
+            self.mapper.complete_and_merge_tracks(self.tri_options)
+            self.mapper.filter_points(self.mapper_options)
+            t3 = time.perf_counter()
+            after = camera_poses(self.reconstruction)
+            moves = _camera_moves_m(before, after)
+            move = float(np.max(moves)) if moves.size else float("inf")
+            # The 95th percentile: one weakly seen keyframe at a session's end can swing for
+            # a round or two while the rest has long settled.
+            typical = float(np.percentile(moves, 95)) if moves.size else float("inf")
+            rounds.append(
+                {
+                    "seconds": time.perf_counter() - start,
+                    "tracks_s": t1 - t0,
+                    "bundle_adjust_s": t2 - t1,
+                    "filter_s": t3 - t2,
+                    "max_camera_move_m": move,
+                    "p95_camera_move_m": typical,
+                    "points": float(self.reconstruction.num_points3D()),
+                    "registered": float(self.reconstruction.num_reg_images()),
+                    "mean_reprojection_error_px": float(
+                        self.reconstruction.compute_mean_reprojection_error()
+                    ),
+                }
+            )
+            log.info(
+                "refinement round %d: largest camera move %.4f m, %d points, %.3f px, %.1f s",
+                len(rounds),
+                move,
+                self.reconstruction.num_points3D(),
+                rounds[-1]["mean_reprojection_error_px"],
+                rounds[-1]["seconds"],
+            )
+            if typical < self.options.converged_change_m:
+                break
+        self.mapper.clear_modified_points3D()
+
+    def register_remaining(self) -> int:
+        """Register unregistered keyframes by absolute pose against the model."""
+        registered = 0
+        failed: set[int] = set()
+        while True:
+            candidates = [
+                i
+                for i in self.mapper.find_next_images(self.mapper_options, structure_less=False)
+                if i not in failed
+            ]
+            if not candidates:
+                break
+            progress = False
+            for image_id in candidates:
+                if self.mapper.register_next_image(self.mapper_options, image_id):
+                    self.mapper.triangulate_image(self.tri_options, image_id)
+                    registered += 1
+                    progress = True
+                    break
+                failed.add(image_id)
+            if not progress:
+                break
+        return registered
+
+    def close(self) -> None:
+        self.mapper.end_reconstruction(False)
+        self.reconstruction.update_point_3d_errors()
+
+
+def fit_world_from_session(
+    session_from_cam: FloatArray, world_from_cam: FloatArray
+) -> tuple[FloatArray, float]:
+    """Rigid `T_W_S` mapping the session's camera centres onto the model's; RMS residual (m).
+
+    Both inputs (N, 4, 4), N >= 3 with non-collinear centres for a unique rotation;
+    the SLAM frame is metric and gravity-aligned, so no scale is fitted.
+    """
+    R, t, _ = umeyama(session_from_cam[:, :3, 3], world_from_cam[:, :3, 3], with_scale=False)
+    T = make_pose(R, t)
+    residual = (session_from_cam[:, :3, 3] @ R.T + t) - world_from_cam[:, :3, 3]
+    return T, float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
+
+
+def fit_unplaced_sessions(
+    keyframes: KeyframeSet, world_from_cam: dict[str, FloatArray], options: RefineOptions
+) -> dict[int, FloatArray]:
+    """`T_W_S` of each unplaced session with enough keyframes in the model, by session index."""
+    fitted: dict[int, FloatArray] = {}
+    for s in np.unique(keyframes.session[~keyframes.placed]).tolist():
+        members = [
+            i
+            for i in np.flatnonzero(keyframes.session == s)
+            if keyframes.names[i] in world_from_cam
+        ]
+        if len(members) < max(options.min_registered_for_placement, 3):
+            log.warning(
+                "session %d: only %d keyframes registered by natural features; left unplaced",
+                s,
+                len(members),
+            )
+            continue
+        T, rms = fit_world_from_session(
+            keyframes.world_from_cam[members],
+            np.stack([world_from_cam[keyframes.names[i]] for i in members]),
+        )
+        log.info("session %d tied in from %d keyframes (fit RMS %.3f m)", s, len(members), rms)
+        fitted[s] = T
+    return fitted
+
+
+def _write_priors(
+    database_path: Path, keyframes: KeyframeSet, indices: list[int], world_from_cam: FloatArray
+) -> None:
+    """Write (or replace, on a resumed run) the position priors of the given keyframes."""
+    import pycolmap
+
+    with pycolmap.Database.open(database_path) as db:
+        existing = {int(p.corr_data_id.id): p for p in db.read_all_pose_priors()}
+        for i in indices:
+            image = db.read_image_with_name(keyframes.names[i])
+            if image is None:
+                continue
+            prior = pose_prior(world_from_cam[i], keyframes.prior_sigma_m[i], image)
+            old = existing.get(int(image.image_id))
+            if old is None:
+                db.write_pose_prior(prior)
+            else:
+                # COLMAP refuses two priors for one image.
+                prior.pose_prior_id = old.pose_prior_id
+                db.update_pose_prior(prior)
+
+
+def refine_with_priors(
+    database_path: Path, keyframes: KeyframeSet, options: RefineOptions
+) -> RefineResult:
+    """Triangulate at the prior poses, BA with priors in rounds; tie in unplaced sessions."""
+    seconds: dict[str, float] = {}
+    rounds: list[dict[str, float]] = []
+    placed = {
+        keyframes.names[i]: keyframes.world_from_cam[i] for i in np.flatnonzero(keyframes.placed)
+    }
+    start = time.perf_counter()
+    mapper = _Mapper(database_path, placed, options)
+    triangulated = mapper.triangulate()
+    seconds["triangulate_s"] = time.perf_counter() - start
+    log.info("triangulated %d observations at the prior poses", triangulated)
+    start = time.perf_counter()
+    mapper.refine_rounds(rounds)
+    seconds["bundle_adjust_s"] = time.perf_counter() - start
+    world_from_session: dict[int, FloatArray] = {}
+    unplaced_sessions = np.unique(keyframes.session[~keyframes.placed])
+    if unplaced_sessions.size:
+        start = time.perf_counter()
+        registered = mapper.register_remaining()
+        log.info("registered %d keyframes of unplaced sessions", registered)
+        world_from_session = fit_unplaced_sessions(
+            keyframes, camera_poses(mapper.reconstruction), options
+        )
+        seconds["register_unplaced_s"] = time.perf_counter() - start
+    mapper.close()
+    result_poses = camera_poses(mapper.reconstruction)
+    if world_from_session:
+        # Second pass: every session placed, priors for the newly placed ones.
+        start = time.perf_counter()
+        seeds = dict(result_poses)
+        newly: list[int] = []
+        world_from_cam = keyframes.world_from_cam.copy()
+        for s, T in world_from_session.items():
+            for i in np.flatnonzero(keyframes.session == s).tolist():
+                world_from_cam[i] = T @ keyframes.world_from_cam[i]
+                newly.append(i)
+                seeds.setdefault(keyframes.names[i], world_from_cam[i])
+        _write_priors(database_path, keyframes, newly, world_from_cam)
+        mapper = _Mapper(database_path, seeds, options)
+        mapper.triangulate()
+        mapper.refine_rounds(rounds)
+        mapper.close()
+        result_poses = camera_poses(mapper.reconstruction)
+        # Refit on the final poses (more keyframes, adjusted together).
+        world_from_session.update(fit_unplaced_sessions(keyframes, result_poses, options))
+        seconds["second_pass_s"] = time.perf_counter() - start
+    return RefineResult(
+        reconstruction=mapper.reconstruction,
+        world_from_cam=result_poses,
+        world_from_session=world_from_session,
+        rounds=rounds,
+        mapper="prior",
+        seconds=seconds,
+    )
+
+
+def incremental_with_priors(
+    database_path: Path,
+    image_dir: Path,
+    work_dir: Path,
+    keyframes: KeyframeSet,
+    options: RefineOptions,
+) -> RefineResult:
+    """COLMAP's incremental mapper with position priors, from scratch (the fallback).
+
+    The pose priors keep the result in the world frame at metric scale; the largest
+    model is kept.
+    """
+    import pycolmap
+
+    start = time.perf_counter()
+    pipeline = _pipeline_options(options, use_priors=True)
+    pipeline.multiple_models = False
+    work_dir.mkdir(parents=True, exist_ok=True)
+    models = pycolmap.incremental_mapping(database_path, image_dir, work_dir, options=pipeline)
+    if not models:
+        raise StageError(
+            f"{database_path}: the incremental mapper built no model (expected overlapping "
+            "keyframes with enough verified matches)"
+        )
+    best = max(models.values(), key=lambda r: r.num_reg_images())
+    poses = camera_poses(best)
+    return RefineResult(
+        reconstruction=best,
+        world_from_cam=poses,
+        world_from_session=fit_unplaced_sessions(keyframes, poses, options),
+        mapper="incremental",
+        seconds={"incremental_mapping_s": time.perf_counter() - start},
+    )
+
+
+def refine(
+    database_path: Path,
+    image_dir: Path,
+    work_dir: Path,
+    keyframes: KeyframeSet,
+    options: RefineOptions,
+) -> RefineResult:
+    """Refine the keyframe poses as `options.mapper` says (see `RefineOptions`)."""
+    if not np.any(keyframes.placed):
+        raise StageError("no session has a world pose (expected at least one placed session)")
+    if options.mapper == "incremental":
+        return incremental_with_priors(database_path, image_dir, work_dir, keyframes, options)
+    result = refine_with_priors(database_path, keyframes, options)
+    n_placed = int(np.sum(keyframes.placed))
+    placed_in_model = sum(
+        1 for i in np.flatnonzero(keyframes.placed) if keyframes.names[i] in result.world_from_cam
+    )
+    if options.mapper == "auto" and placed_in_model < options.min_registered_fraction * n_placed:
+        log.warning(
+            "only %d of %d placed keyframes in the model: trying the incremental mapper",
+            placed_in_model,
+            n_placed,
+        )
+        fallback = incremental_with_priors(database_path, image_dir, work_dir, keyframes, options)
+        if len(fallback.world_from_cam) > len(result.world_from_cam):
+            fallback.rounds = result.rounds
+            return fallback
+    return result

@@ -1,0 +1,368 @@
+"""The SfM stage: one COLMAP model of every session, seeded and held by the SLAM poses.
+
+`run(options, input_dirs, out_dir)` reads SLAM result folders and/or a merge
+folder, builds one database (one camera per physical camera, the keyframes as
+images, a position prior per placed keyframe), extracts SIFT features within a
+budget, matches the pairs chosen from the priors, refines (see
+`postproc.sfm.refine`), and writes into `out_dir`:
+
+- `sparse/0/`: the COLMAP binary model (cameras, images, points, rigs, frames),
+  in the world frame W, metres;
+- `sessions/<name>/keyframes.tum`: refined camera poses with the input's stamps,
+  in the input's frame (`T_S_C` for a SLAM folder, `T_W_C` for a merged session),
+  and `sessions/<name>/keyframes_world.tum` (`T_W_C`); with one session also
+  `keyframes.tum` at the top;
+- `transforms.json`: `T_W_S` of every session (given, or fitted for sessions tied
+  in by natural features) and whether it is placed;
+- `stats.json`: pairs by kind, matches, registered keyframes, reprojection error,
+  refinement rounds and the time of each step;
+- `database.db`, `pairs.txt` and `images/` (links to the keyframes), which a
+  resumed run reuses and the dense stage reads.
+
+An interrupted run is resumed (features and matches already in the database are
+kept); a finished one (stats.json present) is refused unless `overwrite`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from postproc.sfm.database import KeyframeSet, write_database
+from postproc.sfm.features import (
+    FeatureOptions,
+    extract_features,
+    match_pairs,
+    match_statistics,
+    write_pairs_file,
+)
+from postproc.sfm.inputs import SessionInput, read_inputs
+from postproc.sfm.pairs import PairOptions, select_pairs
+from postproc.sfm.refine import RefineOptions, RefineResult, refine
+from shared.calibration.cameras import CameraModel
+from shared.errors import InputError, OutputExistsError, StageError
+from shared.fsutil import atomic_path, write_text_atomic
+from shared.geometry import invert_pose
+from shared.trajectory import Trajectory
+
+FloatArray = npt.NDArray[np.float64]
+
+log = logging.getLogger(__name__)
+
+_OUR_FILES = ("database.db", "stats.json", "sparse", "images", "pairs.txt", "sessions")
+
+
+@dataclass(kw_only=True)
+class SfmOptions:
+    """Options of the SfM stage.
+
+    features, pairs, refine: see `FeatureOptions`, `PairOptions`, `RefineOptions`.
+    prior_sigma_m: fixed one-sigma error of every position prior, metres; None derives
+        it per keyframe as sqrt(floor^2 + sigma(T_W_S)^2 + (drift * distance)^2), where
+        distance is the path length from the session's first keyframe.
+    prior_sigma_floor_m: the floor of the derived sigma, metres (a prior that is too
+        tight keeps the SLAM drift; one that is loose only fixes the gauge).
+    prior_drift_per_m: drift rate assumed when the SLAM's stats.json gives none.
+    copy_images: copy keyframes into images/ instead of linking them.
+    """
+
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    pairs: PairOptions = field(default_factory=PairOptions)
+    refine: RefineOptions = field(default_factory=RefineOptions)
+    prior_sigma_m: float | None = None
+    prior_sigma_floor_m: float = 0.1
+    prior_drift_per_m: float = 0.05
+    copy_images: bool = False
+
+    def __post_init__(self) -> None:
+        if self.prior_sigma_m is not None and not self.prior_sigma_m > 0:
+            raise ValueError(f"prior_sigma_m must be positive, got {self.prior_sigma_m}")
+        if not self.prior_sigma_floor_m > 0 or self.prior_drift_per_m < 0:
+            raise ValueError("prior_sigma_floor_m must be > 0 and prior_drift_per_m >= 0")
+
+
+def prior_sigmas_m(
+    positions_m: FloatArray, *, floor_m: float, world_sigma_m: float, drift_per_m: float
+) -> FloatArray:
+    """Per-keyframe prior sigma (N,), metres, growing with the distance travelled."""
+    steps = np.linalg.norm(np.diff(positions_m, axis=0), axis=1)
+    travelled = np.r_[0.0, np.cumsum(steps)]
+    return np.sqrt(floor_m**2 + world_sigma_m**2 + (drift_per_m * travelled) ** 2)
+
+
+def build_keyframes(
+    sessions: list[SessionInput], options: SfmOptions
+) -> tuple[KeyframeSet, list[CameraModel]]:
+    """The keyframe table of all sessions and the distinct cameras."""
+    cameras: list[CameraModel] = []
+    names: list[str] = []
+    sources: list[Path] = []
+    session_index: list[int] = []
+    camera_index: list[int] = []
+    stamps: list[int] = []
+    poses: list[FloatArray] = []
+    placed: list[bool] = []
+    sigmas: list[FloatArray] = []
+    for k, session in enumerate(sessions):
+        if session.camera not in cameras:
+            cameras.append(session.camera)
+        c = cameras.index(session.camera)
+        T_W_S = session.world_from_session
+        local = session.keyframes.poses
+        if session.world_keyframes is not None:
+            world = session.world_keyframes.poses
+        else:
+            world = local if T_W_S is None else T_W_S @ local
+        for stamp, image in zip(session.keyframes.stamps_ns.tolist(), session.images, strict=True):
+            names.append(f"{session.name}/{stamp}.png")
+            sources.append(image)
+            session_index.append(k)
+            camera_index.append(c)
+            stamps.append(stamp)
+        poses.append(world)
+        placed.extend([T_W_S is not None] * len(session.keyframes))
+        if options.prior_sigma_m is not None:
+            sigmas.append(np.full(len(session.keyframes), options.prior_sigma_m))
+        else:
+            drift = (
+                session.drift_per_m
+                if session.drift_per_m is not None
+                else options.prior_drift_per_m
+            )
+            sigmas.append(
+                prior_sigmas_m(
+                    local[:, :3, 3],
+                    floor_m=options.prior_sigma_floor_m,
+                    world_sigma_m=session.world_sigma_m,
+                    drift_per_m=drift,
+                )
+            )
+    keyframes = KeyframeSet(
+        names=names,
+        sources=sources,
+        session=np.asarray(session_index, dtype=np.int64),
+        camera=np.asarray(camera_index, dtype=np.int64),
+        stamps_ns=np.asarray(stamps, dtype=np.int64),
+        world_from_cam=np.concatenate(poses, axis=0),
+        placed=np.asarray(placed, dtype=bool),
+        prior_sigma_m=np.concatenate(sigmas),
+    )
+    return keyframes, cameras
+
+
+def _link_images(keyframes: KeyframeSet, image_dir: Path, *, copy: bool) -> None:
+    for name, source in zip(keyframes.names, keyframes.sources, strict=True):
+        target = image_dir / name
+        if target.exists():
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if copy:
+            shutil.copyfile(source, target)
+            continue
+        try:
+            target.symlink_to(source.resolve())
+        except OSError:
+            # Filesystems without symbolic links (some network shares): copy instead.
+            shutil.copyfile(source, target)
+
+
+def _prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
+    if out_dir.exists() and any(out_dir.iterdir()):
+        ours = any((out_dir / name).exists() for name in _OUR_FILES)
+        if not ours:
+            raise OutputExistsError(
+                f"{out_dir}: exists and holds other files (refusing to write an SfM run there)"
+            )
+        if (out_dir / "stats.json").exists() and not overwrite:
+            raise OutputExistsError(
+                f"{out_dir}: finished SfM run already there (refusing to overwrite)"
+            )
+        if overwrite:
+            shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _fill_missing(
+    keyframes: KeyframeSet, refined: dict[str, FloatArray], prior_world: FloatArray
+) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """Refined `T_W_C` for every keyframe; ones not in the model get the correction of the
+    nearest keyframe in time of the same session that is (or their prior if none is)."""
+    out = prior_world.copy()
+    in_model = np.array([n in refined for n in keyframes.names])
+    for i, name in enumerate(keyframes.names):
+        if in_model[i]:
+            out[i] = refined[name]
+    for s in np.unique(keyframes.session):
+        members = np.flatnonzero(keyframes.session == s)
+        good = members[in_model[members]]
+        if good.size == 0:
+            continue
+        for i in members[~in_model[members]]:
+            j = good[np.argmin(np.abs(keyframes.stamps_ns[good] - keyframes.stamps_ns[i]))]
+            correction = out[j] @ invert_pose(prior_world[j])
+            out[i] = correction @ prior_world[i]
+    return out, in_model
+
+
+def _write_outputs(
+    out_dir: Path,
+    sessions: list[SessionInput],
+    keyframes: KeyframeSet,
+    result: RefineResult,
+) -> dict[str, Any]:
+    from shared.formats.tum import write_tum
+
+    prior_world = keyframes.world_from_cam.copy()
+    world_from_session: dict[int, FloatArray] = {}
+    for k, session in enumerate(sessions):
+        T = (
+            session.world_from_session
+            if session.world_from_session is not None
+            else (result.world_from_session.get(k))
+        )
+        if T is not None:
+            world_from_session[k] = T
+            members = keyframes.session == k
+            if session.world_from_session is None:
+                prior_world[members] = T @ keyframes.world_from_cam[members]
+    refined, in_model = _fill_missing(keyframes, result.world_from_cam, prior_world)
+    transforms: dict[str, Any] = {}
+    session_stats: dict[str, Any] = {}
+    for k, session in enumerate(sessions):
+        members = np.flatnonzero(keyframes.session == k)
+        T = world_from_session.get(k)
+        folder = out_dir / "sessions" / session.name
+        stamps = keyframes.stamps_ns[members]
+        if T is not None:
+            world = Trajectory(stamps, refined[members])
+            write_tum(folder / "keyframes_world.tum", world, overwrite=True)
+            # The input's frame: W for a merged session, S for a SLAM folder.
+            local = world if session.source == "merge" else world.transformed(invert_pose(T))
+            write_tum(folder / "keyframes.tum", local, overwrite=True)
+            if len(sessions) == 1:
+                write_tum(out_dir / "keyframes.tum", local, overwrite=True)
+            moves = np.linalg.norm(refined[members, :3, 3] - prior_world[members, :3, 3], axis=1)
+        else:
+            moves = np.zeros(0)
+        transforms[session.name] = {
+            "folder": str(session.folder),
+            "placed": T is not None,
+            "placed_by": session.source
+            if session.world_from_session is not None
+            else ("natural_features" if T is not None else None),
+            "T_W_S": T.tolist() if T is not None else None,
+        }
+        session_stats[session.name] = {
+            "keyframes": int(members.size),
+            "in_model": int(np.sum(in_model[members])),
+            "placed": T is not None,
+            "prior_to_refined_rms_m": float(np.sqrt(np.mean(moves**2))) if moves.size else None,
+            "prior_to_refined_max_m": float(np.max(moves)) if moves.size else None,
+        }
+    write_text_atomic(
+        out_dir / "transforms.json", json.dumps(transforms, indent=2) + "\n", overwrite=True
+    )
+    return session_stats
+
+
+def run(
+    options: SfmOptions,
+    input_dirs: list[Path] | list[str],
+    out_dir: Path | str,
+    *,
+    overwrite: bool = False,
+) -> Path:
+    """Run the SfM stage (see the module docstring); returns the model folder `sparse/0`.
+
+    Raises InputError for unreadable or inconsistent inputs, StageError when no model
+    can be built, OutputExistsError for a finished run without `overwrite`.
+    """
+    timings: dict[str, float] = {}
+    start_all = time.perf_counter()
+    out = Path(out_dir)
+    start = time.perf_counter()
+    sessions = read_inputs([Path(d) for d in input_dirs])
+    keyframes, cameras = build_keyframes(sessions, options)
+    if len(keyframes) < 3:
+        raise InputError(
+            f"{len(keyframes)} keyframes in all inputs (expected at least 3 to build a model)"
+        )
+    timings["read_inputs_s"] = time.perf_counter() - start
+    _prepare_out_dir(out, overwrite)
+    image_dir = out / "images"
+    database_path = out / "database.db"
+    _link_images(keyframes, image_dir, copy=options.copy_images)
+    if not database_path.exists():
+        with atomic_path(database_path) as tmp:
+            write_database(tmp, cameras, keyframes)
+
+    start = time.perf_counter()
+    log.info("extracting SIFT features of %d keyframes", len(keyframes))
+    longest = max(max(int(c.width), int(c.height)) for c in cameras)
+    extract_features(
+        database_path, image_dir, keyframes.names, options.features, longest_side_px=longest
+    )
+    timings["extract_s"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    pair_set = select_pairs(
+        keyframes.world_from_cam,
+        keyframes.session,
+        keyframes.stamps_ns,
+        keyframes.placed,
+        options.pairs,
+    )
+    names = keyframes.names
+    pairs_path = write_pairs_file(
+        out / "pairs.txt", [(names[i], names[j]) for i, j in pair_set.pairs.tolist()]
+    )
+    timings["pairs_s"] = time.perf_counter() - start
+    log.info("matching %d pairs %s", len(pair_set), pair_set.counts())
+    start = time.perf_counter()
+    match_pairs(database_path, pairs_path, options.features)
+    timings["match_s"] = time.perf_counter() - start
+    matches = match_statistics(database_path)
+    if matches["verified_pairs"] == 0:
+        raise StageError(
+            f"{database_path}: no pair of keyframes passed geometric verification (expected "
+            "overlapping, textured keyframes)"
+        )
+
+    start = time.perf_counter()
+    result = refine(database_path, image_dir, out / "mapper", keyframes, options.refine)
+    timings["refine_s"] = time.perf_counter() - start
+    timings.update(result.seconds)
+    reconstruction = result.reconstruction
+    reconstruction.extract_colors_for_all_images(image_dir)
+    model_dir = out / "sparse" / "0"
+    with atomic_path(model_dir, overwrite=True) as tmp:
+        tmp.mkdir(parents=True)
+        reconstruction.write_binary(tmp)
+    shutil.rmtree(out / "mapper", ignore_errors=True)
+    session_stats = _write_outputs(out, sessions, keyframes, result)
+    timings["total_s"] = time.perf_counter() - start_all
+    stats = {
+        "keyframes": len(keyframes),
+        "sessions": session_stats,
+        "cameras": len(cameras),
+        "pairs": {"total": len(pair_set), **pair_set.counts()},
+        "matches": matches,
+        "mapper": result.mapper,
+        "registered_images": int(reconstruction.num_reg_images()),
+        "points3D": int(reconstruction.num_points3D()),
+        "mean_track_length": float(reconstruction.compute_mean_track_length()),
+        "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+        "rounds": result.rounds,
+        "seconds": timings,
+        "options": asdict(options),
+    }
+    write_text_atomic(out / "stats.json", json.dumps(stats, indent=2) + "\n", overwrite=True)
+    return model_dir

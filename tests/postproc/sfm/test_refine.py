@@ -1,0 +1,96 @@
+"""Refinement helpers: session placement fit, gap filling, option checks, the mapper choice."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from postproc.sfm.database import KeyframeSet
+from postproc.sfm.features import FeatureOptions
+from postproc.sfm.refine import RefineOptions, fit_world_from_session, refine
+from postproc.sfm.stage import SfmOptions, _fill_missing, run
+from shared.errors import StageError
+from shared.formats.tum import read_tum
+from shared.geometry import make_pose, so3_exp
+from shared.trajectory import ate
+
+from .slam_like import SlamLikeSession, write_merge_like
+
+
+def test_fit_world_from_session_recovers_a_rigid_transform() -> None:
+    rng = np.random.default_rng(2)
+    local = make_pose(so3_exp(rng.normal(size=(20, 3))), rng.normal(scale=3.0, size=(20, 3)))
+    truth = make_pose(so3_exp([0.0, 0.0, 1.2]), [4.0, -2.0, -11.0])
+    world = truth @ local
+    world[:, :3, 3] += rng.normal(scale=0.01, size=(20, 3))
+    estimate, rms = fit_world_from_session(local, world)
+    np.testing.assert_allclose(estimate, truth, atol=0.02)
+    assert 0.005 < rms < 0.03
+
+
+def test_fill_missing_carries_the_nearest_correction() -> None:
+    prior = make_pose(np.broadcast_to(np.eye(3), (4, 3, 3)), np.arange(12.0).reshape(4, 3))
+    keyframes = KeyframeSet(
+        names=["a/1.png", "a/2.png", "a/3.png", "b/1.png"],
+        sources=[Path("x")] * 4,
+        session=np.array([0, 0, 0, 1]),
+        camera=np.zeros(4, dtype=np.int64),
+        stamps_ns=np.array([1, 2, 3, 1]),
+        world_from_cam=prior,
+        placed=np.ones(4, bool),
+        prior_sigma_m=np.ones(4),
+    )
+    shift = make_pose(np.eye(3), [0.0, 0.0, 0.5])
+    refined = {"a/1.png": shift @ prior[0], "a/2.png": shift @ prior[1]}
+    out, in_model = _fill_missing(keyframes, refined, prior)
+    np.testing.assert_array_equal(in_model, [True, True, False, False])
+    np.testing.assert_allclose(out[2], shift @ prior[2])  # corrected like its neighbour
+    np.testing.assert_allclose(out[3], prior[3])  # nothing in its session: the prior
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{"mapper": "magic"}, {"max_rounds": 0}, {"triangulation_max_angle_deg": 0.0}]
+)
+def test_refine_options_reject_bad_values(kwargs: dict[str, object]) -> None:
+    with pytest.raises(ValueError):
+        RefineOptions(**kwargs)  # type: ignore[arg-type]
+
+
+def test_refine_needs_a_placed_session(tmp_path: Path) -> None:
+    keyframes = KeyframeSet(
+        names=["a/1.png"],
+        sources=[Path("x")],
+        session=np.zeros(1, dtype=np.int64),
+        camera=np.zeros(1, dtype=np.int64),
+        stamps_ns=np.ones(1, dtype=np.int64),
+        world_from_cam=np.eye(4)[None],
+        placed=np.zeros(1, bool),
+        prior_sigma_m=np.ones(1),
+    )
+    with pytest.raises(StageError, match="no session has a world pose"):
+        refine(tmp_path / "db", tmp_path, tmp_path, keyframes, RefineOptions())
+
+
+@pytest.mark.slow
+def test_incremental_mapper_with_priors_keeps_the_world_frame(
+    slam_survey: list[SlamLikeSession], tmp_path: Path
+) -> None:
+    merge = write_merge_like(tmp_path / "merge", slam_survey, placed=[True, True])
+    options = SfmOptions(
+        features=FeatureOptions(max_num_features=512, num_threads=2),
+        refine=RefineOptions(mapper="incremental", num_threads=2),
+    )
+    run(options, [merge], tmp_path / "sfm")
+    stats = json.loads((tmp_path / "sfm" / "stats.json").read_text())
+    assert stats["mapper"] == "incremental"
+    for session in slam_survey:
+        refined = read_tum(tmp_path / "sfm" / "sessions" / session.folder.name / "keyframes.tum")
+        prior = session.estimate.transformed(session.world_from_session)
+        # Metric and in the world frame: no alignment needed to beat the priors' shape.
+        assert (
+            ate(refined, session.truth_world_from_cam, align="se3").rmse_m
+            < ate(prior, session.truth_world_from_cam, align="se3").rmse_m
+        )
