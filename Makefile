@@ -27,10 +27,11 @@ test-fast: setup
 	$(BIN)/pytest -m "not slow and not hardware and not gpu"
 
 demo: setup
-	$(BIN)/python -m field.demo --out demo-output
+	$(BIN)/python bench/demo.py --out demo-output
 
+# Every benchmark in turn; each prints its figures (some run for minutes).
 bench: setup
-	$(BIN)/python -m bench
+	set -e; for script in bench/bench_*.py; do echo "== $$script"; $(BIN)/python $$script; done
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-output bench-output

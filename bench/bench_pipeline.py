@@ -1,0 +1,161 @@
+"""End-to-end speed of `wreckmap-post run` on a simulated dive, per stage.
+
+    .venv/bin/python bench/bench_pipeline.py                       # 10 min at 960x540
+    .venv/bin/python bench/bench_pipeline.py --minutes 1 --width 640 --height 360
+
+Simulates one survey per length (`--minutes`, and `--minutes * --scale-fraction` to
+measure how each stage scales), runs the whole chain (GoPro import, slam, depth, merge,
+sfm, dense; in this process) and prints, per stage: seconds, seconds per hour of video,
+the scaling exponent k (time ~ length^k, from the two lengths) and the time extrapolated
+to a 45-minute dive. Stages not built yet are listed; nothing is faked. The simulation
+time is printed apart (it is not part of the chain).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+TARGET_MIN = 45.0
+
+
+def simulate(out: Path, *, minutes: float, args: argparse.Namespace) -> float:
+    if (out / "truth.json").is_file():
+        return 0.0
+    command = [
+        sys.executable, "-m", "field.cli", "sim", "survey", "--out", str(out),
+        "--sessions", str(args.sessions), "--duration", str(minutes * 60.0),
+        "--width", str(args.width), "--height", str(args.height), "--fps", str(args.fps),
+        "--seed", "1", "--workers", "2",
+    ]  # fmt: skip
+    if args.euroc:
+        command.append("--no-video")
+    started = time.monotonic()
+    env = {**os.environ, "PYTHONPATH": str(REPO), "WRECKMAP_PROGRESS": "0"}
+    subprocess.run(command, check=True, env=env)
+    return time.monotonic() - started
+
+
+def project_file(root: Path, sim: Path, *, euroc: bool) -> Path:
+    sessions = sorted(p for p in sim.glob("session_*") if p.is_dir())
+    lines = [
+        f"name: bench {sim.name}",
+        "output: run",
+        f"truth: {sim / 'truth.json'}",
+        f"calibration: {{camchain: {sim / 'calib' / 'camchain.yaml'}, "
+        f"imu: {sim / 'calib' / 'imu.yaml'}}}",
+        "targets:",
+        *[f"  - {t}" for t in sorted((sim / "targets").glob("*.yaml"))],
+        "sessions:",
+    ]
+    for k, session in enumerate(sessions):
+        source = (
+            f"euroc: {session / 'euroc'}"
+            if euroc
+            else f"gopro: [{session / 'gopro' / 'GX010001.MP4'}]"
+        )
+        lines += [f"  - name: dive{k + 1}", f"    {source}", f"    dive: {session / 'dive'}"]
+    path = root / "project.yaml"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def run_chain(root: Path, sim: Path, *, euroc: bool) -> dict[str, float | str]:
+    """Stage -> seconds (summed over sessions), or a status word when it did not finish."""
+    from postproc.pipeline.project import load_project
+    from postproc.pipeline.runner import STAMP_NAME, plan, run_project
+
+    project = load_project(project_file(root, sim, euroc=euroc))
+    result = run_project(project, echo=print)
+    outputs = {t.key: t.out for t in plan(project)[0]}
+    per_stage: dict[str, float | str] = {}
+    for outcome in result.outcomes:
+        if outcome.status in ("done", "skipped"):
+            seconds = outcome.seconds
+            if outcome.status == "skipped":  # up to date from an earlier run: its own time
+                stamp = json.loads((outputs[outcome.key] / STAMP_NAME).read_text())
+                seconds = float(stamp["seconds"])
+            previous = per_stage.get(outcome.stage, 0.0)
+            if isinstance(previous, float):
+                per_stage[outcome.stage] = previous + seconds
+        else:
+            per_stage[outcome.stage] = outcome.status
+    return per_stage
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--minutes", type=float, default=10.0, help="filmed minutes per dive")
+    parser.add_argument("--scale-fraction", type=float, default=0.5, help="second length, x")
+    parser.add_argument("--sessions", type=int, default=1, help="dives in the survey")
+    parser.add_argument("--width", type=int, default=960)
+    parser.add_argument("--height", type=int, default=540)
+    parser.add_argument("--fps", type=float, default=15.0)
+    parser.add_argument("--euroc", action="store_true", help="skip the GoPro video and import")
+    parser.add_argument("--out", type=Path, default=REPO / "bench-output" / "pipeline")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("WRECKMAP_PROGRESS", "0")
+    os.environ.setdefault("GLOG_minloglevel", "1")  # COLMAP INFO lines off
+
+    lengths = [args.minutes, args.minutes * args.scale_fraction]
+    results: list[dict[str, float | str]] = []
+    for minutes in lengths:
+        root = args.out / f"{minutes:g}min_{args.width}x{args.height}"
+        root.mkdir(parents=True, exist_ok=True)
+        sim_s = simulate(root / "sim", minutes=minutes, args=args)
+        print(
+            f"simulated {minutes:g} min x {args.sessions} at {args.width}x{args.height}: "
+            f"{sim_s:.0f} s"
+        )
+        results.append(run_chain(root, root / "sim", euroc=args.euroc))
+
+    video_h = lengths[0] * args.sessions / 60.0
+    print(
+        f"\nwreckmap-post run, {args.sessions} dive(s) of {lengths[0]:g} min "
+        f"({args.width}x{args.height} @ {args.fps:g} Hz); scaling from {lengths[1]:g} min"
+    )
+    header = f"{'stage':<8} {'seconds':>9} {'s / video h':>12} {'k':>6} {'45-min dive s':>14}"
+    print(header)
+    stages = ["import", "slam", "depth", "merge", "sfm", "dense"]
+    total = 0.0
+    figures = {}
+    for stage in stages:
+        long, short = results[0].get(stage), results[1].get(stage)
+        if long is None:
+            print(f"{stage:<8} {'not planned':>9}")
+            continue
+        if not isinstance(long, float):
+            print(f"{stage:<8} {long:>9}")
+            continue
+        k = math.nan
+        if isinstance(short, float) and short > 0 and long > 0 and lengths[0] != lengths[1]:
+            k = math.log(long / short) / math.log(lengths[0] / lengths[1])
+        exponent = k if math.isfinite(k) else 1.0
+        at_45 = long * (TARGET_MIN / lengths[0]) ** exponent
+        total += long
+        figures[stage] = {
+            "seconds": long,
+            "per_video_hour_s": long / video_h,
+            "k": k,
+            "at_45_min_s": at_45,
+        }
+        print(f"{stage:<8} {long:>9.1f} {long / video_h:>12.0f} {k:>6.2f} {at_45:>14.0f}")
+    print(f"{'total':<8} {total:>9.1f} {total / video_h:>12.0f}")
+    missing = [s for s in stages if not isinstance(results[0].get(s, 0.0), float)]
+    print("stages not finished or not built: " + (", ".join(missing) or "none"))
+    (args.out / "bench_pipeline.json").write_text(json.dumps(figures, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""Deterministic stand-ins for the stage adapters, for runner and scheduler tests.
+
+Each writes a small output derived only from its inputs' contents and options (so two
+runs anywhere give identical files) plus the file the runner checks for. Environment:
+FAKE_STAGE_MARKERS (a folder: one `<key>.<pid>.<n>.started` file per call, holding the
+pid), FAKE_STAGE_SLEEP_S (seconds to sleep mid-stage), FAKE_STAGE_FAIL (a stage key to
+fail with a StageError). Imported by name (`fake_stages`) from this folder, by the test
+process and by Dask workers started with this folder on PYTHONPATH.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+from shared.errors import StageError
+
+MARKER_FILES = {
+    "calibrate": "camchain.yaml",
+    "import": "session.yaml",
+    "slam": "stats.json",
+    "depth": "sync.json",
+    "merge": "transforms.json",
+    "sfm": "stats.json",
+    "dense": "dense.json",
+}
+
+
+def _content(path: Path) -> str:
+    """Digest of a file or folder (names and bytes), skipping hidden entries and depth/."""
+    h = hashlib.sha256()
+    path = Path(path)
+    if path.is_file():
+        h.update(path.read_bytes())
+    elif path.is_dir():
+        for file in sorted(p for p in path.rglob("*") if p.is_file()):
+            rel = file.relative_to(path)
+            # Hidden entries are the runner's (stamps, partial folders of running stages).
+            if rel.parts[0].startswith(".") or rel.name.startswith(".") or rel.parts[0] == "depth":
+                continue
+            h.update(str(rel).encode() + file.read_bytes())
+    return h.hexdigest()
+
+
+def _fake(stage: str, options: Any, inputs: dict[str, Any], out: Path, key: str) -> Path:
+    markers = os.environ.get("FAKE_STAGE_MARKERS")
+    if markers:
+        name = f"{key.replace(':', '_')}.{os.getpid()}.{uuid.uuid4().hex[:6]}.started"
+        (Path(markers) / name).write_text(str(os.getpid()))
+    out.mkdir(parents=True)
+    (out / "part1.txt").write_text("first half\n")
+    time.sleep(float(os.environ.get("FAKE_STAGE_SLEEP_S", "0")))
+    if os.environ.get("FAKE_STAGE_FAIL") == key:
+        raise StageError(f"{key}: failing on purpose")
+    record = {
+        "stage": stage,
+        "options": json.dumps(dataclasses.asdict(options), sort_keys=True, default=str),
+        "inputs": {
+            name: [_content(Path(p)) for p in (value if isinstance(value, list) else [value])]
+            for name, value in sorted(inputs.items())
+        },
+    }
+    (out / MARKER_FILES[stage]).write_text(json.dumps(record, sort_keys=True, indent=1))
+    return out
+
+
+def _key(stage: str, inputs: dict[str, Any]) -> str:
+    if stage == "slam":
+        return f"slam:{Path(inputs['recording']).name}"
+    if stage == "depth":
+        return f"depth:{Path(inputs['slam']).name}"
+    if stage == "import":
+        return f"import:{Path(inputs['videos'][0]).stem}"
+    return stage
+
+
+def _adapter(stage: str) -> Any:
+    def run(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[str, Any]) -> Path:
+        return _fake(stage, options, inputs, out, _key(stage, inputs))
+
+    run.__name__ = f"run_{stage}"
+    return run
+
+
+run_calibrate = _adapter("calibrate")
+run_import = _adapter("import")
+run_slam = _adapter("slam")
+run_depth = _adapter("depth")
+run_merge = _adapter("merge")
+run_sfm = _adapter("sfm")
+run_dense = _adapter("dense")
+
+ADAPTERS = {stage: f"fake_stages:run_{stage}" for stage in MARKER_FILES}
