@@ -379,11 +379,12 @@ class Renderer:
         count = np.zeros(len(pixels), dtype=np.float64)
         for sub_rays in self._sub_rays():
             d = sub_rays[pixels].astype(np.float64) @ target_from_cam[:3, :3].T
+            # Sub-rays outside a fisheye's field of view are NaN: they miss (ok is False).
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = -o[2] / d[:, 2]
-            ok = np.isfinite(t) & (t > 0)
-            x = o[0] + t * d[:, 0]
-            y = o[1] + t * d[:, 1]
+                ok = np.isfinite(t) & (t > 0)
+                x = o[0] + t * d[:, 0]
+                y = o[1] + t * d[:, 1]
             col = np.nan_to_num((x + margin) * _TARGET_PIXELS_PER_M - 0.5)
             row = np.nan_to_num((top - y) * _TARGET_PIXELS_PER_M - 0.5)
             col = np.clip(col, 0, texture.shape[1] - 1.001)
