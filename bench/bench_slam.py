@@ -3,6 +3,13 @@
 Usage:
     .venv/bin/python bench/bench_slam.py [--work DIR] [--duration 60] [--sessions 2]
                                          [--width 640] [--seed 1]
+                                         [--render-width 960 --render-height 540 --fps 30]
+    .venv/bin/python bench/bench_slam.py --long [--long-minutes 45] [--window 300]
+
+`--long`: a 45-minute feature-level dive (the diver sweeps the 40 m wreck side
+back and forth, so features never run out); prints the process RSS and the
+backend time per keyframe (wall and CPU) at the start, middle and end, to show
+that the sliding-window smoother keeps both flat, then the ATE.
 
 1. Feature-level sequences (postproc.slam.synthetic: exact tracks with pixel
    noise, simulated IMU): the backend alone, no images.
@@ -30,11 +37,12 @@ import numpy as np
 
 from field.sim.survey import SurveyOptions
 from field.sim.survey import run as render_survey
+from postproc.slam.backend import BackendOptions
 from postproc.slam.estimator import EstimatorOptions, SlamEstimator
 from postproc.slam.frontend import FrontendOptions
 from postproc.slam.stage import SlamOptions
 from postproc.slam.stage import run as run_slam
-from postproc.slam.synthetic import SyntheticOptions, simulate_sequence
+from postproc.slam.synthetic import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
 from postproc.slam.visual_only import VisualOnlyEstimator
 from shared.errors import StageError
 from shared.formats.euroc import read_euroc
@@ -109,13 +117,106 @@ def feature_level(duration_s: float, seeds: list[int]) -> None:
         )
 
 
-def rendered(work: Path, *, duration_s: float, sessions: int, seed: int, width: int) -> None:
-    survey = work / f"survey_{sessions}x{duration_s:.0f}s_seed{seed}"
+def _rss_mb() -> float:
+    """Current resident set size of this process (MB; Linux /proc, else NaN)."""
+    try:
+        fields = Path("/proc/self/statm").read_text().split()
+    except OSError:
+        return float("nan")
+    return int(fields[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+def long_dive(minutes: float, window: int) -> None:
+    """Memory and per-keyframe time over a long feature-level dive."""
+    duration_s = minutes * 60.0
+    # Sweep the 40 m wall back and forth (period 4 min, peak 0.37 m/s) so the
+    # wall stays in view for the whole dive, as a survey of one wreck does.
+    motion = DiverMotion(
+        x=Sinusoids(
+            offset=0.0,
+            amplitudes=(14.0, 0.5),
+            frequencies_rad_s=(2 * np.pi / 240.0, 0.27),
+            phases_rad=(0.0, 0.0),
+        )
+    )
+    started = time.monotonic()
+    seq = simulate_sequence(SyntheticOptions(duration_s=duration_s, seed=0), motion=motion)
+    print(
+        f"-- long feature-level dive: {minutes:.0f} min, {len(seq.frames)} frames "
+        f"(simulated in {time.monotonic() - started:.0f} s), window {window} keyframes"
+    )
+    rss_before = _rss_mb()
+    estimator = SlamEstimator(
+        EstimatorOptions(backend=BackendOptions(window_keyframes=window)),
+        focal_px=seq.camera.fx,
+        imu_from_cam=seq.imu_from_cam,
+        imu=seq.imu,
+        imu_noise=seq.imu_noise(),
+    )
+    report_at = {round(len(seq.frames) * f) - 1 for f in (0.1, 0.5, 1.0)}
+    wall = cpu = 0.0
+    kf_since = 0
+    run_wall0, run_cpu0 = time.monotonic(), time.process_time()
+    print(f"RSS with the simulated data in memory: {rss_before:.0f} MB")
+    for n, frame in enumerate(seq.frames):
+        w0, c0 = time.monotonic(), time.process_time()
+        decision = estimator.process(frame)
+        if decision.is_keyframe:
+            wall += time.monotonic() - w0
+            cpu += time.process_time() - c0
+            kf_since += 1
+        if n in report_at:
+            minute = (frame.stamp_ns - seq.frames[0].stamp_ns) * 1e-9 / 60
+            print(
+                f"minute {minute:5.1f}: keyframes {estimator.backend.num_keyframes:5d} "
+                f"(in window {estimator.backend.active_keyframes:4d}), RSS {_rss_mb():7.0f} MB "
+                f"(+{_rss_mb() - rss_before:.0f}), per keyframe "
+                f"{1000 * wall / max(kf_since, 1):6.1f} ms "
+                f"wall / {1000 * cpu / max(kf_since, 1):6.1f} ms CPU (last interval, incl. "
+                "window rebuilds)"
+            )
+            wall = cpu = 0.0
+            kf_since = 0
+    result = estimator.finish()
+    run_wall = time.monotonic() - run_wall0
+    run_cpu = time.process_time() - run_cpu0
+    truth = Trajectory(seq.frame_stamps_ns, seq.world_from_body)
+    se3 = ate(Trajectory(result.frame_stamps_ns, result.session_from_body), truth, align="se3")
+    stats = estimator.backend.stats
+    print(
+        f"finished: RSS {_rss_mb():.0f} MB, run {run_wall:.0f} s wall / {run_cpu:.0f} s CPU "
+        f"(RTF {duration_s / run_wall:.1f}, backend only), path {truth.path_length_m():.0f} m, "
+        f"ATE {se3.rmse_m * 1000:.0f} mm ({100 * se3.rmse_m / truth.path_length_m():.3f} %), "
+        f"retired {stats.retired_keyframes}, rebuilds {stats.window_rebuilds}, "
+        f"landmarks {result.stats['landmarks']}; load average {os.getloadavg()[0]:.1f}"
+    )
+
+
+def rendered(
+    work: Path,
+    *,
+    duration_s: float,
+    sessions: int,
+    seed: int,
+    width: int,
+    render_size: tuple[int, int] = (640, 360),
+    fps: float = 15.0,
+) -> None:
+    size = f"{render_size[0]}x{render_size[1]}@{fps:g}"
+    suffix = "" if size == "640x360@15" else f"_{size}"
+    survey = work / f"survey_{sessions}x{duration_s:.0f}s_seed{seed}{suffix}"
     if not survey.is_dir():
         print(f"-- rendering the survey into {survey} (once)")
         render_survey(
             SurveyOptions(
-                sessions=sessions, duration_s=duration_s, seed=seed, video=False, workers=2
+                sessions=sessions,
+                duration_s=duration_s,
+                seed=seed,
+                video=False,
+                workers=2,
+                width=render_size[0],
+                height=render_size[1],
+                fps=fps,
             ),
             survey,
         )
@@ -157,7 +258,9 @@ def rendered(work: Path, *, duration_s: float, sessions: int, seed: int, width: 
             )
             print(
                 f"{'':<28} max error {np.max(error.errors_m) * 1000:.1f} mm, "
-                f"tracking failures {stats.get('tracking_failures')}, init {stats.get('init')}"
+                f"tracking failures {stats.get('tracking_failures')}, init {stats.get('init')}, "
+                f"RTF per CPU second {stats.get('real_time_factor_cpu', float('nan')):.2f} "
+                f"(load average {stats.get('load_average_1min')})"
             )
 
 
@@ -171,8 +274,17 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--width", type=int, default=640, help="frontend width, px")
     parser.add_argument("--skip-rendered", action="store_true")
+    parser.add_argument("--render-width", type=int, default=640, help="rendered images, px")
+    parser.add_argument("--render-height", type=int, default=360)
+    parser.add_argument("--fps", type=float, default=15.0, help="rendered frame rate, Hz")
+    parser.add_argument("--long", action="store_true", help="only the long-dive memory run")
+    parser.add_argument("--long-minutes", type=float, default=45.0)
+    parser.add_argument("--window", type=int, default=300, help="smoother window, keyframes")
     args = parser.parse_args()
     os.environ.setdefault("WRECKMAP_PROGRESS", "0")
+    if args.long:
+        long_dive(args.long_minutes, args.window)
+        return
     args.work.mkdir(parents=True, exist_ok=True)
     feature_level(args.duration, [0, 1, 2])
     if not args.skip_rendered:
@@ -182,6 +294,8 @@ def main() -> None:
             sessions=args.sessions,
             seed=args.seed,
             width=args.width,
+            render_size=(args.render_width, args.render_height),
+            fps=args.fps,
         )
 
 

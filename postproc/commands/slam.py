@@ -43,6 +43,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="visual-only baseline (arbitrary scale, not gravity-aligned)",
     )
     parser.add_argument("--max-frames", type=int, help="stop after this many images")
+    parser.add_argument(
+        "--max-speed",
+        type=float,
+        default=10.0,
+        help="m/s between keyframes above which the estimate counts as diverged (0: no check)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing result")
     parser.set_defaults(handler=_run)
 
@@ -55,6 +61,7 @@ def _run(args: argparse.Namespace) -> int:
         frontend=FrontendOptions(width_px=args.width),
         use_imu=not args.no_imu,
         max_frames=args.max_frames,
+        max_speed_m_s=args.max_speed if args.max_speed > 0 else None,
     )
     out = run(
         options,

@@ -8,8 +8,9 @@ keyframes, estimates the visual-inertial trajectory (backend) and writes:
     keyframes/<ns>.png  keyframe images, distorted and at the resolution recorded
     calib/camchain.yaml the camera model used (Kalibr), calib/imu.yaml the IMU noise
     map.ply             sparse landmarks in S (binary little-endian PLY, float32 xyz)
-    stats.json          frames, keyframes, run time, real-time factor, loop closures,
-                        tracking failures and estimator counters
+    stats.json          frames, keyframes, run time, real-time factor (wall clock, and
+                        per CPU second with the load average beside it), loop closures,
+                        tracking failures, sliding-window and estimator counters
 
 The session frame S: z up (gravity (0, 0, -9.81)), origin at the body (IMU)
 position of the first keyframe, yaw such that the first keyframe's body x
@@ -19,6 +20,10 @@ starts at (0, 0, 0) and its z is height above the first keyframe.
 Time stamps in both TUM files are the image stamps on the camera clock, as
 recorded; the estimator runs on the IMU clock (t_imu = t_cam + Kalibr's
 timeshift_cam_imu).
+
+Images are decoded one thread ahead (`prefetch`). A trajectory whose
+keyframes move faster than `SlamOptions.max_speed_m_s` has diverged and is
+refused with a StageError rather than written.
 
 The folder is written under a temporary name and renamed when complete; a
 complete result already on disk is kept (returned as is) unless overwrite.
@@ -30,9 +35,14 @@ import dataclasses
 import functools
 import json
 import logging
+import os
+import queue
+import threading
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -60,6 +70,8 @@ from shared.trajectory import Trajectory
 
 LOG = logging.getLogger(__name__)
 
+T = TypeVar("T")
+
 RESULT_FILES = ("trajectory.tum", "keyframes.tum", "map.ply", "stats.json")
 
 
@@ -73,6 +85,12 @@ class SlamOptions:
         scale, S = first keyframe's body frame (not gravity-aligned), no loop closure.
     max_frames: stop after this many images (None: all); for quick looks and tests.
     min_tracks_ok: a frame with fewer tracked features counts as a tracking failure.
+    max_speed_m_s: a keyframe-to-keyframe speed above this (m/s) means the estimate has
+        diverged (too few landmarks to hold the IMU integration: scenes beyond
+        `max_depth_m`, a wrong calibration guess); the stage then raises StageError
+        instead of handing a wrong trajectory to depth fusion and SfM. A diver swims
+        below 1 m/s and a scooter reaches about 2.5 m/s; None turns the check off
+        (not applied to the visual-only baseline, whose scale is arbitrary).
     """
 
     frontend: FrontendOptions = field(default_factory=FrontendOptions)
@@ -80,6 +98,7 @@ class SlamOptions:
     use_imu: bool = True
     max_frames: int | None = None
     min_tracks_ok: int = 30
+    max_speed_m_s: float | None = 10.0
 
 
 def _resolve_calibration(
@@ -180,6 +199,7 @@ def run(
             estimator_options, focal_px=frontend.focal_px, imu_from_cam=calibration.imu_from_cam
         )
     started = time.monotonic()
+    started_cpu = time.process_time()
     with atomic_path(out, overwrite=overwrite) as tmp:
         keyframe_dir = tmp / "keyframes"
         keyframe_dir.mkdir(parents=True)
@@ -191,7 +211,7 @@ def run(
         first_stamp: int | None = None
         last_stamp = 0
         for count, frame in enumerate(
-            progress(source.frames(), total=total, desc="slam", unit="frame")
+            progress(prefetch(source.frames()), total=total, desc="slam", unit="frame")
         ):
             if options.max_frames is not None and count >= options.max_frames:
                 break
@@ -212,7 +232,10 @@ def run(
             first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
             last_stamp = frame.stamp_ns
         result = estimator.finish()
+        if options.max_speed_m_s is not None and options.use_imu:  # VO scale is arbitrary
+            _check_speed(result, options.max_speed_m_s, source.name)
         run_time_s = time.monotonic() - started
+        cpu_time_s = time.process_time() - started_cpu
         duration_s = (last_stamp - (first_stamp or last_stamp)) * 1e-9
         _write_result(
             tmp,
@@ -224,6 +247,11 @@ def run(
                 "run_time_s": run_time_s,
                 "sequence_duration_s": duration_s,
                 "real_time_factor": duration_s / run_time_s if run_time_s > 0 else 0.0,
+                # CPU seconds of this process (all its threads): on a shared machine the
+                # wall-clock factor also measures the other load.
+                "cpu_time_s": cpu_time_s,
+                "real_time_factor_cpu": duration_s / cpu_time_s if cpu_time_s > 0 else 0.0,
+                "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
                 "tracking_failures": tracking_failures,
                 "frontend_width_px": frontend.image_size[0],
                 "lost_tracks": frontend.lost_tracks,
@@ -237,6 +265,77 @@ def run(
             if path.name not in kept:
                 path.unlink()
     return out
+
+
+class _Failure:
+    def __init__(self, error: BaseException) -> None:
+        self.error = error
+
+
+def prefetch(items: Iterable[T], depth: int = 4) -> Iterator[T]:
+    """Iterate `items` in a background thread, up to `depth` ahead.
+
+    Image decoding (PNG or H.264) releases the GIL, so on two cores it overlaps
+    the tracking and the backend instead of adding to them. An exception of the
+    producer is raised here, at the item where it happened; closing the
+    iterator early stops the producer.
+    """
+    handoff: queue.Queue[Any] = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def put(item: object) -> bool:
+        while not stop.is_set():
+            try:
+                handoff.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not put(item):
+                    return
+            put(done)
+        except BaseException as error:  # handed to the consumer, raised there
+            put(_Failure(error))
+
+    thread = threading.Thread(target=produce, name="slam-prefetch", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = handoff.get()
+            if item is done:
+                return
+            if isinstance(item, _Failure):
+                raise item.error
+            yield item
+    finally:
+        stop.set()
+        thread.join()
+
+
+def keyframe_speeds_m_s(stamps_ns: IntArray, poses: FloatArray) -> FloatArray:
+    """Speeds (m/s) between consecutive poses (N, 4, 4) at `stamps_ns` (int64 ns)."""
+    dt_s = np.diff(np.asarray(stamps_ns, dtype=np.int64)).astype(np.float64) * 1e-9
+    step_m = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    speeds: FloatArray = step_m / np.maximum(dt_s, 1e-9)
+    return speeds
+
+
+def _check_speed(result: SlamResult, max_speed_m_s: float, name: str) -> None:
+    speeds = keyframe_speeds_m_s(result.keyframe_stamps_ns, result.keyframe_session_from_body)
+    if len(speeds) and float(np.max(speeds)) > max_speed_m_s:
+        worst = int(np.argmax(speeds))
+        raise StageError(
+            f"{name}: the trajectory diverged: {speeds[worst]:.1f} m/s between keyframes "
+            f"{worst} and {worst + 1} (limit {max_speed_m_s:g} m/s); only "
+            f"{result.stats['landmarks']} landmarks over {result.stats['keyframes']} keyframes "
+            "held the IMU integration (scene too far or too poorly textured, or a wrong "
+            "calibration guess)"
+        )
 
 
 def _describe(frontend: KltFrontend, tracks: FrameTracks) -> tuple[IntArray, Descriptors]:

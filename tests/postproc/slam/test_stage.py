@@ -172,3 +172,55 @@ def test_ply_layout() -> None:
     header, _, body = data.partition(b"end_header\n")
     assert b"element vertex 1" in header
     np.testing.assert_array_equal(np.frombuffer(body, "<f4"), [1.0, 2.0, 3.0])
+
+
+def test_prefetch_keeps_order_raises_producer_errors_and_stops_early() -> None:
+    import threading
+
+    from postproc.slam.stage import prefetch
+
+    assert list(prefetch(range(50), depth=3)) == list(range(50))
+
+    def failing():  # type: ignore[no-untyped-def]
+        yield 1
+        raise InputError("frame 2: broken PNG")
+
+    got = []
+    with pytest.raises(InputError, match="broken PNG"):
+        for item in prefetch(failing()):
+            got.append(item)
+    assert got == [1]
+    produced = []
+
+    def endless():  # type: ignore[no-untyped-def]
+        n = 0
+        while True:
+            produced.append(n)
+            yield n
+            n += 1
+
+    stream = prefetch(endless(), depth=2)
+    assert next(stream) == 0
+    stream.close()  # stops the producer thread
+    assert not any(t.name == "slam-prefetch" for t in threading.enumerate())
+    assert len(produced) <= 5
+
+
+def test_a_diverged_trajectory_is_refused_with_the_speed_named() -> None:
+    from types import SimpleNamespace
+
+    from postproc.slam.stage import _check_speed, keyframe_speeds_m_s
+
+    stamps = np.array([0, 500_000_000, 1_000_000_000], dtype=np.int64)
+    poses = np.repeat(np.eye(4)[None], 3, axis=0)
+    poses[1, 0, 3] = 0.4  # 0.8 m/s
+    poses[2, 0, 3] = 8.4  # 16 m/s: diverged
+    np.testing.assert_allclose(keyframe_speeds_m_s(stamps, poses), [0.8, 16.0])
+    result = SimpleNamespace(
+        keyframe_stamps_ns=stamps,
+        keyframe_session_from_body=poses,
+        stats={"landmarks": 12, "keyframes": 3},
+    )
+    _check_speed(result, 20.0, "clip")  # type: ignore[arg-type]
+    with pytest.raises(StageError, match=r"clip: the trajectory diverged: 16.0 m/s .* 1 and 2"):
+        _check_speed(result, 10.0, "clip")  # type: ignore[arg-type]
