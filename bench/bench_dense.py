@@ -11,14 +11,20 @@ figures measure the dense stage alone, not SfM drift) and sparse points, runs
 10 cm for the fused points and the mesh. Completeness counts only truth-surface samples
 seen by three or more keyframes (projection inside the undistorted image and the true
 depth agrees); a second row counts only those seen by three keyframes from within
-`--near-range` metres (what the water lets a camera resolve). Goal: accuracy >= 90 % and
-completeness >= 70 % at 5 cm.
+`--near-range` metres (what the water lets a camera resolve), and completeness is also
+broken down by range band (the range within which a sample is seen by three keyframes:
+0-2, 2-4, 4-6, 6+ m). Goal: accuracy >= 90 % and completeness >= 70 % at 5 cm.
+
+With `--keep DIR`, an SfM folder already in DIR is reused (no rendering) and the truth
+visibility is cached in DIR/seen.npz; `--dense-name` names the dense output folder so
+variants can be compared on the same images.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -30,7 +36,8 @@ from field.sim.mesh import scene_mesh
 from field.sim.render import Renderer
 from field.sim.survey import SurveyOptions, SurveySimulator
 from postproc.dense.colmap_io import read_pinhole_views, write_known_pose_model
-from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, visibility_counts
+from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, visibility
+from postproc.dense.fusion import FusionOptions
 from postproc.dense.ply import read_ply
 from postproc.dense.stage import DenseOptions, run
 from shared.calibration.cameras import PinholeRadtan
@@ -98,6 +105,13 @@ def main() -> None:
         help="second completeness row: seen by 3 keyframes within this range",
     )  # fmt: skip
     parser.add_argument("--keep", type=Path, help="work folder to keep (default: temporary)")
+    parser.add_argument("--dense-name", default="dense", help="dense folder inside the work one")
+    parser.add_argument("--no-mesh", action="store_true", help="skip Poisson meshing")
+    parser.add_argument("--min-num-pixels", type=int, default=FusionOptions().min_num_pixels,
+                        help="fusion: images agreeing on a point")  # fmt: skip
+    parser.add_argument("--max-depth-error", type=float,
+                        default=FusionOptions().max_depth_error_rel,
+                        help="fusion: depth agreement (fraction of the depth)")  # fmt: skip
     args = parser.parse_args()
 
     sim = SurveySimulator(
@@ -109,22 +123,24 @@ def main() -> None:
     all_poses = sim.world_from_cam(0, stamps)
     keys = pick_keyframes(all_poses, args.keyframe_step)
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench_dense."))
-    sfm_dir, out_dir = work / "sfm", work / "dense"
+    sfm_dir, out_dir = work / "sfm", work / args.dense_name
     print(f"work folder: {work}")
 
     start = time.perf_counter()
     _ = sim.scene
-    poses, depths, names = [], [], []
+    poses = [all_poses[i] for i in keys]
+    names = [f"{int(stamps[i])}.png" for i in keys]
+    reuse = (sfm_dir / "sparse").exists() and all(
+        (sfm_dir / "images" / n).is_file() for n in names
+    )
     (sfm_dir / "images").mkdir(parents=True, exist_ok=True)
-    for i in keys:
-        frame = sim.render_frame(0, int(stamps[i]), frame_index=int(i))
-        name = f"{int(stamps[i])}.png"
-        cv2.imwrite(str(sfm_dir / "images" / name), frame.image_rgb[..., ::-1])
-        poses.append(all_poses[i])
-        depths.append(frame.depth_m)
-        names.append(name)
-    points, observations = sparse_points(camera, poses, depths)
-    if not (sfm_dir / "sparse").exists():
+    if not reuse:
+        depths = []
+        for i, name in zip(keys, names, strict=True):
+            frame = sim.render_frame(0, int(stamps[i]), frame_index=int(i))
+            cv2.imwrite(str(sfm_dir / "images" / name), frame.image_rgb[..., ::-1])
+            depths.append(frame.depth_m)
+        points, observations = sparse_points(camera, poses, depths)
         write_known_pose_model(
             sfm_dir / "sparse", camera_model="OPENCV",
             camera_params=[camera.fx, camera.fy, camera.cx, camera.cy, camera.k1, camera.k2,
@@ -134,13 +150,20 @@ def main() -> None:
             observations=observations,
         )  # fmt: skip
     render_s = time.perf_counter() - start
-    print(f"{len(keys)} keyframes of {len(stamps)} frames ({args.width}x{args.height}), "
-          f"{len(points)} sparse points; rendered in {render_s:.1f} s")  # fmt: skip
+    print(f"{len(keys)} keyframes of {len(stamps)} frames ({args.width}x{args.height}); "
+          f"{'reused' if reuse else 'rendered in'} {render_s:.1f} s")  # fmt: skip
 
     start = time.perf_counter()
-    options = DenseOptions(max_image_size_px=args.max_image_size, backend=args.backend)
+    load_before = os.getloadavg()[0]
+    options = DenseOptions(
+        max_image_size_px=args.max_image_size, backend=args.backend, make_mesh=not args.no_mesh
+    )
+    options.fusion = FusionOptions(
+        min_num_pixels=args.min_num_pixels, max_depth_error_rel=args.max_depth_error
+    )
     run(options, sfm_dir, out_dir)
     dense_s = time.perf_counter() - start
+    load_after = os.getloadavg()[0]
     report = json.loads((out_dir / "dense.json").read_text())
 
     # Truth: the scene mesh; completeness samples seen by >= 3 keyframes in the undistorted
@@ -154,29 +177,43 @@ def main() -> None:
         width=views[0].width, height=views[0].height, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2],
         cy=K[1, 2], k1=0.0, k2=0.0, p1=0.0, p2=0.0,
     )  # fmt: skip
-    renderer = Renderer(sim.scene, pinhole, sim.options.water)
-    centres = np.array([p[:3, 3] for p in poses])
+    cache = work / "seen.npz"
+    if cache.is_file():
+        cached = np.load(cache)
+        samples, counts, ranges = cached["samples"], cached["counts"], cached["ranges"]
+    else:
+        renderer = Renderer(sim.scene, pinhole, sim.options.water)
+        centres = np.array([p[:3, 3] for p in poses])
+        tri_centres = truth.vertices[truth.triangles].mean(axis=1)
+        reach = 8.0  # m: far beyond what the water lets the cameras resolve
+        near = np.min(
+            np.linalg.norm(tri_centres[:, None, :] - centres[None, ::5, :], axis=2), axis=1
+        )
+        samples, _ = sample_surface(truth.vertices, truth.triangles[near < reach + 1.0], 0.02,
+                                    seed=1)  # fmt: skip
+        true_depths = [renderer.render(p).depth_m for p in poses]
+        counts, ranges = visibility(
+            samples, [by_name[n].K for n in names], [by_name[n].cam_from_world for n in names],
+            true_depths, nearest=3,
+        )  # fmt: skip
+        np.savez(cache, samples=samples, counts=counts, ranges=ranges)
     v, t = truth.vertices, truth.triangles
-    tri_centres = v[t].mean(axis=1)
-    reach = 8.0  # m: far beyond what the water lets the cameras resolve
-    near = np.min(np.linalg.norm(tri_centres[:, None, :] - centres[None, ::5, :], axis=2), axis=1)
-    samples, _ = sample_surface(v, t[near < reach + 1.0], 0.02, seed=1)
-    true_depths = [renderer.render(p).depth_m for p in poses]
-    counts = visibility_counts(
-        samples, [by_name[n].K for n in names], [by_name[n].cam_from_world for n in names],
-        true_depths,
-    )  # fmt: skip
-    seen = samples[counts >= 3]
-    counts_near = visibility_counts(
-        seen, [by_name[n].K for n in names], [by_name[n].cam_from_world for n in names],
-        true_depths, max_range_m=args.near_range,
-    )  # fmt: skip
-    seen_near = seen[counts_near >= 3]
+    seen_mask = counts >= 3
+    seen = samples[seen_mask]
+    third = ranges[seen_mask, 2]  # the range within which three keyframes see the sample
+    seen_near = seen[third <= args.near_range]
     fused = read_ply(out_dir / "fused.ply")
     thresholds = (0.02, 0.05, 0.10)
     rows = [("fused points", evaluate(fused.vertices, v, t, seen, thresholds_m=thresholds))]
     near_label = f"fused, seen <= {args.near_range:g} m"
     rows.append((near_label, evaluate(fused.vertices, v, t, seen_near, thresholds_m=thresholds)))
+    bands = [(0.0, 2.0), (2.0, 4.0), (4.0, 6.0), (6.0, np.inf)]
+    band_rows = []
+    for lo, hi in bands:
+        in_band = seen[(third >= lo) & (third < hi)]
+        label = f"fused, band {lo:g}-{hi:g} m" if np.isfinite(hi) else f"fused, band {lo:g}+ m"
+        scores = evaluate(fused.vertices, v, t, in_band, thresholds_m=thresholds)
+        band_rows.append((f"{label} ({100 * len(in_band) / max(len(seen), 1):.0f} %)", scores))
     mesh_path = out_dir / "mesh.ply"
     if mesh_path.is_file():
         mesh = read_ply(mesh_path)
@@ -186,6 +223,7 @@ def main() -> None:
         )
         near_label = f"mesh, seen <= {args.near_range:g} m"
         rows.append((near_label, evaluate(mesh_samples, v, t, seen_near, thresholds_m=thresholds)))
+    rows.extend(band_rows)
     errors = distance_to_mesh(fused.vertices, v, t)
     eval_s = time.perf_counter() - start
 
@@ -198,13 +236,13 @@ def main() -> None:
     print(f"fused point error: median {100 * np.median(errors):.2f} cm, "
           f"90th percentile {100 * np.percentile(errors, 90):.2f} cm")  # fmt: skip
     print()
-    print(f"{'':22s}" + "".join(f"{f'{100 * d:.0f} cm acc/comp/F1':>24s}" for d in thresholds))
+    print(f"{'':32s}" + "".join(f"{f'{100 * d:.0f} cm acc/comp/F1':>24s}" for d in thresholds))
     for label, scores in rows:
         cells = "".join(
             f"{f'{100 * s.accuracy:.1f} / {100 * s.completeness:.1f} / {100 * s.f1:.1f}':>24s}"
             for s in scores
         )
-        print(f"{label:22s}{cells}")
+        print(f"{label:32s}{cells}")
     print()
     timings = report["timings"]
     n = report["images"]
@@ -212,6 +250,8 @@ def main() -> None:
     if per_image is not None:
         print(f"depth maps: {per_image:.2f} s per image; whole stage {dense_s / n:.2f} s per image "
               f"({dense_s:.1f} s for {n}); evaluation {eval_s:.1f} s")  # fmt: skip
+    print(f"load average (1 min): {load_before:.1f} before, {load_after:.1f} after the stage "
+          f"({os.cpu_count()} cores)")  # fmt: skip
     five = rows[0][1][1]
     goal = five.accuracy >= 0.9 and five.completeness >= 0.7
     print(f"goal at 5 cm (accuracy >= 90 %, completeness >= 70 %): {'met' if goal else 'NOT met'}")

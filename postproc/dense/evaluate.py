@@ -132,9 +132,38 @@ def visibility_counts(
 ) -> IntArray:
     """How many cameras see each point: it projects inside the (pinhole) image, in front,
     no farther than `max_range_m` from the camera centre, and the camera's true depth map
-    there agrees with its depth (no occluder)."""
+    there agrees with its depth (so a surface behind another is not seen)."""
+    counts, ranges = visibility(
+        points_m, Ks, cams_from_world, depth_maps_m, tolerance_m=tolerance_m,
+        tolerance_rel=tolerance_rel, nearest=0,
+    )  # fmt: skip
+    if np.isfinite(max_range_m):
+        counts, ranges = visibility(
+            points_m, Ks, cams_from_world, depth_maps_m, tolerance_m=tolerance_m,
+            tolerance_rel=tolerance_rel, nearest=len(Ks),
+        )  # fmt: skip
+        return np.sum(ranges <= max_range_m, axis=1).astype(np.int64)
+    return counts
+
+
+def visibility(
+    points_m: FloatArray,
+    Ks: list[FloatArray],
+    cams_from_world: list[FloatArray],
+    depth_maps_m: list[npt.NDArray[np.float32]],
+    *,
+    tolerance_m: float = 0.02,
+    tolerance_rel: float = 0.01,
+    nearest: int = 3,
+) -> tuple[IntArray, FloatArray]:
+    """(counts (N,), ranges (N, nearest) m): how many cameras see each point (see
+    `visibility_counts`, occlusion tested on the true depth maps `depth_maps_m`, camera
+    z in m, inf or nan where nothing is hit) and the distances from the `nearest` closest
+    of those cameras, ascending (inf where fewer see it). `ranges[:, 2]` is the range
+    within which a point is seen by three cameras."""
     points = np.asarray(points_m, dtype=np.float64)
     counts = np.zeros(len(points), np.int64)
+    ranges = np.full((len(points), nearest + 1), np.inf)
     for K, pose, depth in zip(Ks, cams_from_world, depth_maps_m, strict=True):
         height, width = depth.shape
         pc = points @ pose[:3, :3].T + pose[:3, 3]
@@ -147,9 +176,15 @@ def visibility_counts(
         z = pc[idx, 2]
         true_z = depth[v, u].astype(np.float64)
         seen = np.isfinite(true_z) & (np.abs(true_z - z) <= tolerance_m + tolerance_rel * z)
-        seen &= np.linalg.norm(pc[idx], axis=1) <= max_range_m
-        counts[idx[seen]] += 1
-    return counts
+        idx = idx[seen]
+        counts[idx] += 1
+        if nearest > 0:
+            # Keep the `nearest` smallest ranges: put the new one in the spare last
+            # column and sort the row.
+            ranges[idx, nearest] = np.linalg.norm(pc[idx], axis=1)
+            ranges[idx] = np.sort(ranges[idx], axis=1)
+            ranges[idx, nearest] = np.inf
+    return counts, ranges[:, :nearest]
 
 
 @dataclass

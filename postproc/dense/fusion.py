@@ -20,11 +20,16 @@ class FusionOptions:
     the depth, noisier than PatchMatch's, so the default is looser than COLMAP's 10);
     check_num_images: overlapping images checked per reference image; input_type:
     "geometric" (filtered maps) or "photometric".
+
+    min_num_pixels 2 and max_depth_error_rel 0.02 (looser than COLMAP's 5 and 0.01) were
+    measured on the simulated survey (640x360, true poses): completeness at 5 cm 58.7 ->
+    67.6 %, accuracy 99.9 -> 99.3 %. Far surfaces (5-8 m through hazy water) are matched
+    by few images and with depth errors near 1-2 %: the stricter rules dropped them.
     """
 
-    min_num_pixels: int = 3
+    min_num_pixels: int = 2
     max_reproj_error_px: float = 2.0
-    max_depth_error_rel: float = 0.01
+    max_depth_error_rel: float = 0.02
     max_normal_error_deg: float = 25.0
     check_num_images: int = 50
     input_type: str = "geometric"

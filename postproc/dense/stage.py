@@ -174,12 +174,19 @@ class CpuBackend:
             else np.sqrt(r[0] * r[1])
             for v, r in zip(views, ranges, strict=True)
         ]
+        # Far partners are chosen for the 90th percentile depth: the far end of an oblique
+        # wall needs a longer baseline than the median depth asks for.
+        far = [
+            float(np.percentile(v.point_depths_m(), 90.0)) if len(v.point_depths_m()) else r[1]
+            for v, r in zip(views, ranges, strict=True)
+        ]
         neighbours = select_neighbours(
             [v.K for v in views],
             [(v.width, v.height) for v in views],
             [v.cam_from_world for v in views],
             typical,
             options.neighbours,
+            far_depths_m=far,
         )
         cache: OrderedDict[int, npt.NDArray[np.uint8]] = OrderedDict()
 

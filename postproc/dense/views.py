@@ -27,10 +27,14 @@ class NeighbourOptions:
     best_angle_deg: the angle scored highest; min_overlap: smallest fraction of the
     reference's view (sampled on a grid at its scene depth) that must land in the partner;
     min_sideways: smallest sine of the angle between the baseline and the reference's
-    optical axis (0: any motion, 1: purely sideways).
+    optical axis (0: any motion, 1: purely sideways); far_neighbours: extra partners,
+    beyond `max_neighbours`, scored at the reference's far scene depth (a long oblique
+    wall or the seafloor 5-8 m away needs a longer baseline than its median depth asks
+    for: the triangulation angle falls with depth), when far depths are given.
     """
 
     max_neighbours: int = 4
+    far_neighbours: int = 2
     min_angle_deg: float = 2.0
     max_angle_deg: float = 30.0
     best_angle_deg: float = 10.0
@@ -102,14 +106,38 @@ def select_neighbours(
     cams_from_world: list[FloatArray],
     scene_depths_m: npt.ArrayLike,
     options: NeighbourOptions | None = None,
+    *,
+    far_depths_m: npt.ArrayLike | None = None,
 ) -> list[list[int]]:
-    """For each image, the indices of its best partners (highest score first, at most
-    `options.max_neighbours`, none scoring 0).
+    """For each image, the indices of its partners: the best for its typical depth
+    (highest score first, at most `options.max_neighbours`, none scoring 0), then, when
+    `far_depths_m` is given, up to `options.far_neighbours` more, the best scored at the
+    far depth among those not already chosen.
 
     Ks: 3x3 intrinsics; sizes: (width, height) px; cams_from_world: 4x4 poses `T_C_W`;
-    scene_depths_m: a typical depth of what each image sees (median sparse-point depth).
+    scene_depths_m: a typical depth of what each image sees (median sparse-point depth);
+    far_depths_m: a far depth of what it sees (90th percentile sparse-point depth).
     """
     options = options or NeighbourOptions()
+    near = _ranked(Ks, sizes, cams_from_world, scene_depths_m, options)
+    result = [r[: options.max_neighbours] for r in near]
+    if far_depths_m is None or options.far_neighbours <= 0:
+        return result
+    far = _ranked(Ks, sizes, cams_from_world, far_depths_m, options)
+    for chosen, candidates in zip(result, far, strict=True):
+        extra = [j for j in candidates if j not in chosen][: options.far_neighbours]
+        chosen.extend(extra)
+    return result
+
+
+def _ranked(
+    Ks: list[FloatArray],
+    sizes: list[tuple[int, int]],
+    cams_from_world: list[FloatArray],
+    scene_depths_m: npt.ArrayLike,
+    options: NeighbourOptions,
+) -> list[list[int]]:
+    """Every image's partners scoring above 0 at the given depths, best first."""
     n = len(Ks)
     depths = np.asarray(scene_depths_m, dtype=np.float64)
     worlds_from_cam = [np.linalg.inv(T) for T in cams_from_world]
@@ -139,5 +167,5 @@ def select_neighbours(
             if score > 0:
                 scored.append((score, int(j)))
         scored.sort(key=lambda s: (-s[0], s[1]))
-        result.append([j for _, j in scored[: options.max_neighbours]])
+        result.append([j for _, j in scored])
     return result

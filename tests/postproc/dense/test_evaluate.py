@@ -10,6 +10,7 @@ from postproc.dense.evaluate import (
     evaluate,
     point_triangle_distance,
     sample_surface,
+    visibility,
     visibility_counts,
 )
 
@@ -85,3 +86,25 @@ def test_accuracy_and_completeness() -> None:
     assert scores[1].f1 == pytest.approx(2 * 0.55 / 1.55, abs=0.02)
     empty = evaluate(np.zeros((0, 3)), vertices, triangles, truth)
     assert all(s.accuracy == 0 and s.completeness == 0 and s.f1 == 0 for s in empty)
+
+
+def test_visibility_ranges_of_the_nearest_cameras() -> None:
+    K = np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]])
+    depth = np.full((100, 100), np.inf, np.float32)
+    point = np.array([[0.0, 0.0, 4.0]])
+    poses, depths = [], []
+    for z in (0.0, 1.0, 2.0, 3.0):  # cameras on the optical axis, 4, 3, 2 and 1 m away
+        pose = np.eye(4)
+        pose[2, 3] = -z
+        poses.append(pose)
+        d = depth.copy()
+        d[50, 50] = 4.0 - z
+        depths.append(d)
+    occluded = depths[1].copy()
+    occluded[50, 50] = 1.0  # something 1 m in front of the camera 3 m away hides the point
+    counts, ranges = visibility(point, [K] * 4, poses, [depths[0], occluded, *depths[2:]])
+    assert counts.tolist() == [3]
+    np.testing.assert_allclose(ranges[0], [1.0, 2.0, 4.0])
+    counts, ranges = visibility(point, [K] * 2, poses[:2], depths[:2], nearest=3)
+    assert counts.tolist() == [2] and ranges[0, 2] == np.inf
+    np.testing.assert_allclose(ranges[0, :2], [3.0, 4.0])

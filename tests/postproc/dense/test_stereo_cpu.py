@@ -127,6 +127,17 @@ def test_consistency_vote() -> None:
         consistent_depth([])
 
 
+def test_one_pair_suffices_by_default_unless_pairs_disagree() -> None:
+    # A far pixel only one pair matched keeps its depth (fusion re-checks it across
+    # images); two pairs far apart from each other agree with neither's median.
+    a = np.array([[2.0, 2.0, 0.0]], np.float32)
+    b = np.array([[0.0, 3.0, 0.0]], np.float32)
+    out = consistent_depth([a, b])
+    assert out[0, 0] == pytest.approx(2.0) and out[0, 1] == 0.0 and out[0, 2] == 0.0
+    strict = consistent_depth([a, b], CpuStereoOptions(min_consistent=2))
+    assert not strict.any()
+
+
 def test_normals_of_a_tilted_plane() -> None:
     K = PINHOLE.intrinsic_matrix
     vv, uu = np.mgrid[0:192, 0:256].astype(float)

@@ -60,3 +60,23 @@ def test_forward_motion_and_tiny_baselines_are_rejected() -> None:
 def test_no_neighbours_for_a_lonely_camera() -> None:
     poses = [cam_from_world_at(0.0), cam_from_world_at(50.0)]
     assert select_neighbours([K, K], [SIZE, SIZE], poses, [3.0, 3.0]) == [[], []]
+
+
+def test_far_partners_have_longer_baselines() -> None:
+    # Scene 3 m away at the median, 9 m at the far end: the far partners are chosen for a
+    # good angle at 9 m (10 degrees is about 1.6 m), beyond the near ones.
+    poses = [cam_from_world_at(0.1 * k) for k in range(41)]
+    options = NeighbourOptions(max_neighbours=2, far_neighbours=2, max_angle_deg=40.0)
+    near_only = select_neighbours([K] * 41, [SIZE] * 41, poses, [3.0] * 41, options)
+    both = select_neighbours(
+        [K] * 41, [SIZE] * 41, poses, [3.0] * 41, options, far_depths_m=[9.0] * 41
+    )
+    assert both[20][:2] == near_only[20] and len(both[20]) == 4
+    near_baselines = [abs(j - 20) * 0.1 for j in both[20][:2]]
+    far_baselines = [abs(j - 20) * 0.1 for j in both[20][2:]]
+    assert min(far_baselines) > max(near_baselines)
+    assert len(set(both[20])) == 4 and 20 not in both[20]
+    none = NeighbourOptions(max_neighbours=2, far_neighbours=0, max_angle_deg=40.0)
+    assert select_neighbours(
+        [K] * 41, [SIZE] * 41, poses, [3.0] * 41, none, far_depths_m=[9.0] * 41
+    ) == near_only
