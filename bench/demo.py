@@ -1,7 +1,7 @@
 """`make demo`: a simulated survey taken in through the real paths and processed end to end.
 
     .venv/bin/python bench/demo.py --out demo-output            # what `make demo` runs
-    .venv/bin/python bench/demo.py --out /tmp/d --duration 20 --width 320 --height 180
+    .venv/bin/python bench/demo.py --out demo-output/short --duration 20 --width 320 --height 180
 
 Steps, each a real command line run as a subprocess:
 
