@@ -93,6 +93,19 @@ def reprojection_errors_px(
     return np.where(np.isfinite(errors), errors, np.inf)
 
 
+def _camera_from_opencv(
+    model: type[PinholeRadtan] | type[PinholeEquidistant],
+    image_size: tuple[int, int],
+    matrix: FloatArray,
+    distortion: FloatArray,
+) -> CameraModel:
+    """The camera from OpenCV's 3x3 matrix and its first 4 distortion coefficients."""
+    K = np.asarray(matrix, dtype=np.float64)
+    coeffs = np.asarray(distortion, dtype=np.float64).ravel()[:4]
+    intrinsics = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+    return model.from_kalibr(image_size, intrinsics, [float(c) for c in coeffs])
+
+
 def _fit_radtan(
     views: list[GridView], image_size: tuple[int, int], options: IntrinsicsOptions
 ) -> tuple[CameraModel, list[FloatArray], FloatArray]:
@@ -122,19 +135,7 @@ def _fit_radtan(
     except cv2.error as error:
         raise StageError(f"intrinsics: OpenCV calibration failed ({error.err})") from None
     _, K, dist, rvecs, tvecs, std_intrinsics = output[:6]
-    d = np.asarray(dist, dtype=np.float64).ravel()
-    camera = PinholeRadtan(
-        width=width,
-        height=height,
-        fx=float(K[0, 0]),
-        fy=float(K[1, 1]),
-        cx=float(K[0, 2]),
-        cy=float(K[1, 2]),
-        k1=float(d[0]),
-        k2=float(d[1]),
-        p1=float(d[2]),
-        p2=float(d[3]),
-    )
+    camera = _camera_from_opencv(PinholeRadtan, (width, height), K, dist)
     poses = [_pose(r, t) for r, t in zip(rvecs, tvecs, strict=True)]
     return camera, poses, np.asarray(std_intrinsics, dtype=np.float64).ravel()[:4]
 
@@ -167,19 +168,7 @@ def _fit_equidistant(
         )
     except cv2.error as error:
         raise StageError(f"intrinsics: OpenCV fisheye calibration failed ({error.err})") from None
-    d = np.asarray(D, dtype=np.float64).ravel()
-    camera = PinholeEquidistant(
-        width=width,
-        height=height,
-        fx=float(K[0, 0]),
-        fy=float(K[1, 1]),
-        cx=float(K[0, 2]),
-        cy=float(K[1, 2]),
-        k1=float(d[0]),
-        k2=float(d[1]),
-        k3=float(d[2]),
-        k4=float(d[3]),
-    )
+    camera = _camera_from_opencv(PinholeEquidistant, (width, height), K, D)
     poses = [_pose(r, t) for r, t in zip(rvecs, tvecs, strict=True)]
     return camera, poses, np.full(4, np.nan)
 
