@@ -12,6 +12,15 @@ a user would shift the zone by hand). Target: our time error at least 3x
 smaller, depth error at most 5 cm.
 Part 2: VIO with a random walk in z; world z RMSE against the truth after the
 sync alone and after depth factors; writes bench-output/depth_factors.png.
+Part 3: both methods on a real dive's shape.
+Part 4: `make demo`'s shape (field.sim survey, a minute of video, six 10 s
+samples, both dives of the day in one folder): how often the old selection
+rule (least robust scale) and the current one (ambiguity measured, clock prior
+when needed) return a wrong offset without saying so, refuse, or need the prior.
+Every "ours" above also counts the answers flagged ambiguous (target: none on
+long dives).
+
+Quick run: --seeds 1 --short-seeds 10.
 """
 
 from __future__ import annotations
@@ -28,7 +37,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from postproc.depth.factors import FusionSettings, fuse_depth
 from postproc.depth.paper import paper_depth_sync
 from postproc.depth.simulate import SyntheticDive, simulate_dive
-from postproc.depth.sync import DepthSync, SyncError, coarse_offset_search, fit_depth_sync
+from postproc.depth.sync import (
+    AmbiguityLimits,
+    ClockPrior,
+    DepthSync,
+    SyncError,
+    coarse_offset_search,
+    depth_variation_m,
+    fit_depth_sync,
+    solve_clock_offset,
+)
 
 OFFSETS_S = (29.91, 289.8, 3 * 3600.0 + 17.3, -9 * 3600.0 - 41.6)
 DRIFTS_PPM = (0.0, 50.0, -50.0)
@@ -46,13 +64,38 @@ def relative(sim: SyntheticDive) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
     )
 
 
+EVIDENCE: list[float] = []  # of every "ours" answer on the long dives
+FLAGGED: list[str] = []  # long-dive answers flagged ambiguous (should stay empty)
+
+
 def ours(traj_t, traj_z, dive_t, depth) -> DepthSync:
-    coarse = coarse_offset_search(traj_t, traj_z, dive_t, depth, max_offset_s=15 * 3600.0)
-    fits = [
-        fit_depth_sync(traj_t, traj_z, dive_t, depth, initial_offset_s=c.offset_s)
-        for c in coarse.candidates
-    ]
-    return min(fits, key=lambda f: f.robust_scale_m)
+    """The stage's search (no clock prior: these relative clocks carry none)."""
+    solution = solve_clock_offset(traj_t, traj_z, [(dive_t, depth)], max_offset_s=15 * 3600.0)
+    EVIDENCE.append(solution.ambiguity.evidence)
+    if solution.ambiguity.ambiguous:
+        FLAGGED.append("; ".join(solution.ambiguity.reasons))
+    return solution.sync
+
+
+def old_rule(traj_t, traj_z, dives, min_depth_range_m) -> DepthSync | None:
+    """The selection before ambiguity was measured: least robust scale over every candidate."""
+    best = None
+    for dive_t, depth in dives:
+        try:
+            coarse = coarse_offset_search(traj_t, traj_z, dive_t, depth, max_offset_s=15 * 3600.0)
+        except SyncError:
+            continue
+        for c in coarse.candidates:
+            fit = fit_depth_sync(traj_t, traj_z, dive_t, depth, initial_offset_s=c.offset_s)
+            if best is None or fit.robust_scale_m < best[0].robust_scale_m:
+                best = (fit, dive_t, depth)
+    if best is None:
+        return None
+    fit, dive_t, depth = best
+    depth_range, z_range = depth_variation_m(traj_t, traj_z, dive_t, depth, fit)
+    if min(depth_range, z_range) < min_depth_range_m or not fit.time_offset_sigma_s <= 5.0:
+        return None
+    return fit
 
 
 def time_error_s(sync: DepthSync, sim: SyntheticDive, traj_t: np.ndarray) -> float:
@@ -293,13 +336,79 @@ def part_real_shape(seeds: int) -> None:
     )
 
 
+def part_short_dives(seeds: int) -> None:
+    """`make demo`'s dives: old rule against the current one, with VIO-like z noise."""
+    from field.sim.survey import SurveyOptions, SurveySimulator
+
+    print(
+        f"\nPart 4: demo-shaped dives (60 s video, 6 samples), seeds 1..{seeds}, 2 sessions each;"
+        " z = truth + 0.01 m/sqrt(s) random walk + 1 cm noise; min_depth_range_m 0.5"
+    )
+    limits = AmbiguityLimits(min_depth_range_m=0.5)
+    prior = ClockPrior(window_s=300.0, zone_step_s=900.0)
+    counts = {"old wrong": 0, "old refused": 0, "new wrong": 0, "new refused": 0, "prior": 0}
+    right_evidence, wrong_evidence = [], []
+    n = 0
+    for seed in range(1, seeds + 1):
+        sim = SurveySimulator(SurveyOptions(sessions=2, duration_s=60.0, seed=seed, video=False))
+        profiles = [sim.dive_profile(k) for k in range(len(sim.sessions))]
+        rng = np.random.default_rng(seed)
+        for truth in sim.sessions:
+            true_ns = np.arange(truth.start_ns, truth.end_ns, 50_000_000, dtype=np.int64)
+            z = truth.trajectory.world_from_body(true_ns)[:, 2, 3]
+            z = z - z[0] + np.cumsum(rng.normal(0.0, 0.01 * np.sqrt(0.05), z.size))
+            z += rng.normal(0.0, 0.01, z.size)
+            camera_ns = truth.gopro_clock.apply(true_ns)
+            reference_ns = int(camera_ns[0])
+            traj_t = (camera_ns - reference_ns) / 1e9
+            true_offset = (truth.dive_clock.apply(int(true_ns[0])) - reference_ns) / 1e9
+            dives = [(p.stamps_s - reference_ns / 1e9, p.depth_m) for p in profiles]
+            n += 1
+            old = old_rule(traj_t, z, dives, 0.5)
+            if old is None:
+                counts["old refused"] += 1
+            elif abs(old.time_offset_s - true_offset) > 3.0:
+                counts["old wrong"] += 1
+            solution = solve_clock_offset(
+                traj_t, z, dives, max_offset_s=15 * 3600.0, prior=prior, limits=limits
+            )
+            wrong = abs(solution.sync.time_offset_s - true_offset) > 3.0
+            (wrong_evidence if wrong else right_evidence).append(solution.ambiguity.evidence)
+            if solution.ambiguity.ambiguous:
+                counts["new refused"] += 1
+            elif wrong:
+                counts["new wrong"] += 1
+            counts["prior"] += solution.prior_used and not solution.ambiguity.ambiguous
+    print(
+        f"  {n} sessions | old rule: silently wrong {counts['old wrong']}, refused "
+        f"{counts['old refused']} | now: silently wrong {counts['new wrong']}, refused "
+        f"{counts['new refused']}, answered thanks to the clock prior {counts['prior']}"
+    )
+    if right_evidence:
+        q = np.percentile(right_evidence, [10, 50, 90])
+        print(
+            f"  evidence of right answers: 10/50/90 % {q[0]:.1f} / {q[1]:.1f} / {q[2]:.1f} "
+            f"(threshold {limits.min_evidence:.1f})"
+        )
+    if wrong_evidence:
+        print(f"  evidence of wrong best answers: max {max(wrong_evidence):.1f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--short-seeds", type=int, default=50, help="Part 4 survey seeds")
     args = parser.parse_args()
     part_sync(args.seeds)
     part_fusion(args.seeds)
     part_real_shape(args.seeds)
+    print(
+        f"\nlong dives (parts 1-3): {len(EVIDENCE)} answers, flagged ambiguous {len(FLAGGED)}, "
+        f"least evidence {min(EVIDENCE):.0f}"
+    )
+    for reason in FLAGGED:
+        print(f"  flagged: {reason}")
+    part_short_dives(args.short_seeds)
 
 
 if __name__ == "__main__":

@@ -65,6 +65,22 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="METRES",
         help="one-sigma error of a depth sample (default: 0.058 m)",
     )
+    parser.add_argument(
+        "--clock-window",
+        type=float,
+        default=300.0,
+        metavar="SECONDS",
+        help="when the depth match alone is ambiguous, look for the offset within this "
+        "distance of a whole time-zone step between the camera and dive-computer clocks "
+        "(default: 300 s; 0 turns the prior off)",
+    )
+    parser.add_argument(
+        "--min-evidence",
+        type=float,
+        default=6.0,
+        help="how much better the chosen offset must fit than any clearly different one "
+        "(log-likelihood ratio; default: 6)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     parser.set_defaults(handler=_depth)
 
@@ -80,6 +96,8 @@ def _depth(args: argparse.Namespace) -> int:
         estimate_scale=args.estimate_scale,
         fuse=not args.no_fuse,
         plot=not args.no_plot,
+        clock_prior_window_s=args.clock_window if args.clock_window > 0 else None,
+        min_evidence=args.min_evidence,
     )
     if args.depth_sigma is not None:
         options.depth_sigma_m = args.depth_sigma

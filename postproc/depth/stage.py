@@ -15,7 +15,16 @@ Outputs in `out_dir`:
   `reference_time_s`, the trajectory's first stamp; `drift_ppm`), the depth
   relation `depth = depth_offset_m - depth_scale * z`, the residual RMS, and
   one-sigma uncertainties (Gauss-Newton covariance scaled by the residual
-  variance). Written last: its presence means the stage is done.
+  variance). `offset_ambiguity` says how well the data single out the offset
+  (samples in the overlap, depth excursion in resolution steps, offset
+  sigma, the best clearly different offset with its cost and depth, and the
+  `evidence` between them); `clock_prior` whether the camera-against-dive
+  wall-clock prior was available and used (then `search_ambiguity` holds the
+  unrestricted search's measure). Written last: its presence means the stage
+  is done. An ambiguous offset is a StageError (nothing written): a wrong one
+  would put the whole dive metres off its depth, and the rest of the pipeline
+  goes on without depth for the session (merge and SfM use depth only when
+  every session has it).
 * `trajectory_world.tum`: the trajectory in the world frame (z = -depth,
   0 at the surface; x, y, yaw and the camera clock kept).
 * `trajectory_world_fused.tum` (when `fuse`): re-optimised with depth factors
@@ -37,12 +46,15 @@ import numpy.typing as npt
 
 from postproc.depth.sync import (
     QUANTISATION_SIGMA_M,
+    AmbiguityLimits,
+    ClockPrior,
+    ClockSolution,
     CoarseCandidate,
     DepthSync,
+    OffsetAmbiguity,
     SyncError,
-    coarse_offset_search,
-    depth_variation_m,
     fit_depth_sync,
+    solve_clock_offset,
     valid_mask,
 )
 from shared.clock import NS_PER_S, ClockModel
@@ -58,6 +70,8 @@ SYNC_NAME = "sync.json"
 WORLD_NAME = "trajectory_world.tum"
 FUSED_NAME = "trajectory_world_fused.tum"
 PLOT_NAME = "depth_sync.png"
+# Wall-clock stamps before this (2000-01-01) are not dates: uptime, media time, relative seconds.
+_EARLIEST_DATE_S = 946_684_800.0
 
 _HINT = (
     "give the clock offset by hand with --time-offset SECONDS (dive-computer time minus camera "
@@ -94,7 +108,22 @@ class DepthOptions:
     min_depth_range_m: the overlapping profile must span at least this
         (5-95 percentile), m; flatter profiles cannot give a clock offset.
     max_time_sigma_s: a clock offset less certain than this is refused, s.
+    min_evidence: a clearly different offset (or another dive) must fit worse
+        than the answer by this much (samples x mean Huber cost difference, a
+        log-likelihood ratio for Gaussian noise), or the offset is ambiguous.
+    min_overlap_samples: fewer dive samples inside the trajectory make the
+        offset ambiguous.
+    clock_prior_window_s: the camera's and the dive computer's wall clocks are
+        taken to agree within this many seconds, apart from whole time-zone
+        steps; used only when the search alone is ambiguous, and only when the
+        trajectory's stamps and the dive's are wall-clock dates. None: no prior.
+    clock_prior_zone_step_s: time-zone step between the two clocks, s (900:
+        any zone difference, quarter hours included; 0: same zone).
     plot: write depth_sync.png.
+
+    An ambiguous offset (sync.json's `offset_ambiguity`) is refused with a
+    StageError naming the dive and the competing offsets, rather than written
+    out: a wrong offset puts the whole dive metres off its true depth.
     """
 
     method: Literal["ours", "paper"] = "ours"
@@ -113,6 +142,10 @@ class DepthOptions:
     max_gap_s: float = 5.0
     min_depth_range_m: float = 1.0
     max_time_sigma_s: float = 5.0
+    min_evidence: float = 6.0
+    min_overlap_samples: int = 4
+    clock_prior_window_s: float | None = 300.0
+    clock_prior_zone_step_s: float = 900.0
     plot: bool = True
 
 
@@ -155,12 +188,15 @@ def run(
     dives = _read_dives(dive_path, reference_ns)
 
     candidates: list[CoarseCandidate] = []
+    solution: ClockSolution | None = None
+    prior = _clock_prior(options, reference_ns, dives)
     if options.method == "paper":
         sync, dive = _paper(options, traj_t, traj_z, dives)
     elif options.time_offset_s is not None:
         sync, dive = _given_offset(options, traj_t, traj_z, dives)
     else:
-        sync, dive, candidates = _search(options, traj_t, traj_z, dives)
+        solution = _search(options, traj_t, traj_z, dives, prior)
+        sync, dive, candidates = solution.sync, dives[solution.dive], solution.candidates
 
     scale_free: DepthSync | None = None
     if options.method == "ours" and not options.estimate_scale:
@@ -218,6 +254,12 @@ def run(
         traj_z,
         sample_cam_t,
     )
+    document["clock_prior"] = _prior_document(options, prior, solution)
+    document["offset_ambiguity"] = (
+        None if solution is None else _ambiguity_document(solution.ambiguity, dives)
+    )
+    if solution is not None and solution.prior_used:
+        document["search_ambiguity"] = _ambiguity_document(solution.search_ambiguity, dives)
     write_text_atomic(sync_path, json.dumps(document, indent=2) + "\n", overwrite=overwrite)
     return sync_path
 
@@ -238,6 +280,18 @@ def _check_options(options: DepthOptions) -> None:
             raise StageError(f"depth: {name} must be a positive number, got {value}")
     if options.time_offset_s is not None and not math.isfinite(options.time_offset_s):
         raise StageError(f"depth: time_offset_s must be finite, got {options.time_offset_s}")
+    window = options.clock_prior_window_s
+    if window is not None and not (window > 0.0 and math.isfinite(window)):
+        raise StageError(f"depth: clock_prior_window_s must be a positive number, got {window}")
+    step = options.clock_prior_zone_step_s
+    if not (step >= 0.0 and math.isfinite(step)):
+        raise StageError(f"depth: clock_prior_zone_step_s must be 0 or more, got {step}")
+    if not (options.min_evidence >= 0.0 and math.isfinite(options.min_evidence)):
+        raise StageError(f"depth: min_evidence must be 0 or more, got {options.min_evidence}")
+    if options.min_overlap_samples < 3:
+        raise StageError(
+            f"depth: min_overlap_samples must be at least 3, got {options.min_overlap_samples}"
+        )
 
 
 def _read_dives(path: Path, reference_ns: int) -> list[_DiveData]:
@@ -294,74 +348,144 @@ def _fit(
     )
 
 
+def _clock_prior(
+    options: DepthOptions, reference_ns: int, dives: list[_DiveData]
+) -> ClockPrior | None:
+    """The prior that both clocks read about the same wall-clock time, when it applies.
+
+    The trajectory's stamps are the camera's clock (GoPro: its wall clock as
+    set, usually local time) and the dive log holds the computer's wall clock
+    read as UTC; equal readings give offset 0 in the stage's time base. Stamps
+    that are not dates (a trajectory in seconds from zero) carry no prior.
+    """
+    if options.clock_prior_window_s is None:
+        return None
+    reference_s = reference_ns / NS_PER_S
+    dive_starts = [d.profile.stamps_s[0] for d in dives if d.profile.stamps_s.size]
+    if reference_s < _EARLIEST_DATE_S or min(dive_starts, default=0.0) < _EARLIEST_DATE_S:
+        return None
+    return ClockPrior(
+        window_s=options.clock_prior_window_s, zone_step_s=options.clock_prior_zone_step_s
+    )
+
+
 def _search(
     options: DepthOptions,
     traj_t: npt.NDArray[np.float64],
     traj_z: npt.NDArray[np.float64],
     dives: list[_DiveData],
-) -> tuple[DepthSync, _DiveData, list[CoarseCandidate]]:
-    best: tuple[DepthSync, _DiveData, list[CoarseCandidate]] | None = None
-    reasons = []
-    for dive in dives:
-        try:
-            coarse = coarse_offset_search(
-                traj_t,
-                traj_z,
-                dive.t_s,
-                dive.depth_m,
-                max_offset_s=options.max_offset_s,
-                step_s=options.search_step_s,
-                min_overlap_fraction=options.min_overlap_fraction,
-                max_gap_s=options.max_gap_s,
-            )
-        except SyncError as error:
-            reasons.append(f"{dive.label}: {error}")
-            continue
-        for candidate in coarse.candidates:
-            try:
-                sync = _fit(
-                    options,
-                    traj_t,
-                    traj_z,
-                    dive,
-                    candidate.offset_s,
-                    time=True,
-                    scale=options.estimate_scale,
-                )
-            except SyncError:
-                continue
-            if best is None or sync.robust_scale_m < best[0].robust_scale_m:
-                best = (sync, dive, coarse.candidates)
-    if best is None:
+    prior: ClockPrior | None,
+) -> ClockSolution:
+    limits = AmbiguityLimits(
+        min_evidence=options.min_evidence,
+        min_samples=options.min_overlap_samples,
+        min_depth_range_m=options.min_depth_range_m,
+        max_time_sigma_s=options.max_time_sigma_s,
+        noise_sigma_m=options.depth_sigma_m,
+    )
+    try:
+        solution = solve_clock_offset(
+            traj_t,
+            traj_z,
+            [(d.t_s, d.depth_m) for d in dives],
+            max_offset_s=options.max_offset_s,
+            prior=prior,
+            limits=limits,
+            labels=[d.label for d in dives],
+            step_s=options.search_step_s,
+            min_overlap_fraction=options.min_overlap_fraction,
+            max_gap_s=options.max_gap_s,
+            estimate_drift=options.estimate_drift,
+            estimate_scale=options.estimate_scale,
+            drift_prior_sigma_ppm=options.drift_prior_sigma_ppm,
+        )
+    except SyncError as error:
         raise StageError(
             f"the dive profile does not overlap the trajectory within +-{options.max_offset_s:.0f}"
-            f" s ({'; '.join(reasons) or 'no fit converged'}); {_HINT}"
-        )
-    sync, dive, candidates = best
-    depth_range, z_range = depth_variation_m(
-        traj_t, traj_z, dive.t_s, dive.depth_m, sync, max_gap_s=options.max_gap_s
-    )
-    if min(depth_range, z_range) < options.min_depth_range_m:
+            f" s ({error}); {_HINT}"
+        ) from None
+    dive = dives[solution.dive]
+    sync = solution.sync
+    ambiguity = solution.ambiguity
+    if ambiguity.ambiguous:
+        if prior is None:
+            why = (
+                "no clock prior to settle it (off, or the stamps are not wall-clock dates)"
+                if options.clock_prior_window_s is not None
+                else "no clock prior to settle it (clock_prior_window_s is off)"
+            )
+        else:
+            why = f"the clock prior ({prior.describe()}) did not settle it"
         raise StageError(
-            f"{dive.label}: the depth profile is too flat to find the clock offset (depth spans "
-            f"{depth_range:.2f} m, trajectory z {z_range:.2f} m where they overlap; need "
-            f"{options.min_depth_range_m:.2f} m); {_HINT}"
+            f"{dive.label}: the clock offset is ambiguous, not written (a wrong one puts the dive "
+            f"metres off its depth): {'; '.join(ambiguity.reasons)}; {why}; {_HINT}"
         )
-    if not sync.time_offset_sigma_s <= options.max_time_sigma_s:
-        raise StageError(
-            f"{dive.label}: the clock offset is undetermined ({sync.time_offset_s:.1f} +- "
-            f"{sync.time_offset_sigma_s:.1f} s: nothing to correlate); {_HINT}"
+    if (
+        prior is not None
+        and not solution.prior_used
+        and not bool(prior.contains(sync.time_offset_s))
+    ):
+        log.warning(
+            "%s: the clock offset %.1f s is %.0f s from the clock prior %s: the dive computer's "
+            "clock is further off than expected (kept: the depth data single it out)",
+            dive.label,
+            sync.time_offset_s,
+            solution.prior_distance_s,
+            prior.describe(),
         )
     log.info(
-        "%s: clock offset %.3f +- %.3f s, drift %.1f +- %.1f ppm, depth offset %.3f m",
+        "%s: clock offset %.3f +- %.3f s, drift %.1f +- %.1f ppm, depth offset %.3f m "
+        "(evidence %.1f over the next offset%s)",
         dive.label,
         sync.time_offset_s,
         sync.time_offset_sigma_s,
         sync.drift_ppm,
         sync.drift_sigma_ppm,
         sync.depth_offset_m,
+        ambiguity.evidence,
+        ", inside the clock prior" if solution.prior_used else "",
     )
-    return sync, dive, candidates
+    return solution
+
+
+def _prior_document(
+    options: DepthOptions, prior: ClockPrior | None, solution: ClockSolution | None
+) -> dict[str, Any]:
+    return {
+        "available": prior is not None,
+        "used": bool(solution is not None and solution.prior_used),
+        "window_s": options.clock_prior_window_s,
+        "zone_step_s": options.clock_prior_zone_step_s,
+        "distance_s": None if solution is None else solution.prior_distance_s,
+        "inside": None
+        if prior is None or solution is None
+        else bool(prior.contains(solution.sync.time_offset_s)),
+        "relation": "time_offset_s is expected within window_s of a whole multiple of "
+        "zone_step_s (the two wall clocks agree apart from a time-zone difference)",
+    }
+
+
+def _ambiguity_document(ambiguity: OffsetAmbiguity, dives: list[_DiveData]) -> dict[str, Any]:
+    runner_dive = ambiguity.runner_up_dive
+    return {
+        "ambiguous": ambiguity.ambiguous,
+        "reasons": list(ambiguity.reasons),
+        "samples": ambiguity.samples,
+        "depth_range_m": ambiguity.depth_range_m,
+        "z_range_m": ambiguity.z_range_m,
+        "excursion_steps": ambiguity.excursion_steps,
+        "time_offset_sigma_s": _number(ambiguity.time_offset_sigma_s),
+        "cost_sigma_m": ambiguity.cost_sigma_m,
+        "best_cost": ambiguity.best_cost,
+        "runner_up_offset_s": ambiguity.runner_up_offset_s,
+        "runner_up_dive": None if runner_dive is None else dives[runner_dive].label,
+        "runner_up_cost": ambiguity.runner_up_cost,
+        "runner_up_depth_offset_m": ambiguity.runner_up_depth_offset_m,
+        "evidence": _number(ambiguity.evidence),
+        "solutions_compared": ambiguity.solutions,
+        "evidence_meaning": "samples x (mean Huber cost of the best clearly different offset - "
+        "that of the answer), costs at cost_sigma_m; null: no other offset fits at all",
+    }
 
 
 def _overlap_count(

@@ -32,10 +32,19 @@ Estimation, in two steps:
    scale, from the best coarse candidates. Uncertainties come from the
    Gauss-Newton covariance scaled by the residual variance; they assume
    independent residuals, so slow VIO drift in z makes them optimistic.
+
+Then the answer is checked (`assess_offset`, `solve_clock_offset`): the fits of
+every candidate (of every dive) are compared at one noise scale, and the offset
+counts as known only when each clearly different one fits worse by a margin
+(`evidence`) and the overlap has enough samples, depth excursion and
+curvature. When it does not, a `ClockPrior` (the two wall clocks agree within
+minutes, apart from time-zone steps) may restrict the search; otherwise the
+caller is told that the offset is ambiguous.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -50,6 +59,41 @@ QUANTISATION_SIGMA_M = 0.1 / math.sqrt(12.0)
 
 class SyncError(ValueError):
     """The data cannot give a clock offset (no overlap, nothing to correlate)."""
+
+
+@dataclass(frozen=True)
+class ClockPrior:
+    """What the clocks' own readings say about the offset (dive-computer minus camera), s.
+
+    Both devices keep a wall clock: the camera's stamps (the trajectory's) and the
+    dive computer's log usually agree to within minutes, apart from a time-zone
+    difference (the computer keeps local time with no zone). So the offset is
+    expected within `window_s` of `centre_offset_s + k * zone_step_s` for some
+    integer k (only k = 0 when `zone_step_s` is 0). Offsets are in the caller's
+    relative time base, where equal wall-clock readings give `centre_offset_s` = 0.
+    """
+
+    window_s: float
+    zone_step_s: float = 0.0
+    centre_offset_s: float = 0.0
+
+    def distance_s(self, offset_s: npt.ArrayLike) -> FloatArray:
+        """|offset - nearest allowed centre| (seconds), elementwise."""
+        d = np.asarray(offset_s, dtype=np.float64) - self.centre_offset_s
+        if self.zone_step_s > 0.0:
+            d = d - self.zone_step_s * np.round(d / self.zone_step_s)
+        distance: FloatArray = np.abs(d)
+        return distance
+
+    def contains(self, offset_s: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        """True where an offset (seconds) lies inside the prior's windows."""
+        inside: npt.NDArray[np.bool_] = self.distance_s(offset_s) <= self.window_s
+        return inside
+
+    def describe(self) -> str:
+        """The windows in words, for messages."""
+        zones = f" (+ whole {self.zone_step_s:.0f} s zone steps)" if self.zone_step_s > 0 else ""
+        return f"{self.centre_offset_s:+.0f} +- {self.window_s:.0f} s{zones}"
 
 
 @dataclass(frozen=True)
@@ -87,6 +131,7 @@ class DepthSync:
     residual_rms_m: RMS of the inlier depth residuals, metres.
     *_sigma: one-sigma uncertainties (0 for a parameter held fixed).
     used: dive samples inside the trajectory; inliers: those with full Huber weight.
+    residuals_m: depth residuals of the used samples at the solution (metres).
     """
 
     time_offset_s: float
@@ -102,6 +147,7 @@ class DepthSync:
     inliers: int
     robust_scale_m: float
     covariance: FloatArray = field(repr=False)
+    residuals_m: FloatArray = field(repr=False, default_factory=lambda: np.zeros(0))
 
     def camera_time_s(self, dive_t_s: npt.ArrayLike) -> FloatArray:
         """Camera-clock times (relative seconds) of dive-clock readings (relative seconds)."""
@@ -178,6 +224,7 @@ def coarse_offset_search(
     min_overlap_fraction: float = 0.5,
     max_gap_s: float = 5.0,
     candidates: int = 5,
+    prior: ClockPrior | None = None,
 ) -> CoarseResult:
     """Score every clock offset on a `step_s` grid by the depth misfit; best candidates first.
 
@@ -187,7 +234,8 @@ def coarse_offset_search(
     offsets within `centre_offset_s +- max_offset_s` where at least
     `min_overlap_fraction` of the possible samples overlap are kept
     (possible: the fewer of the dive's samples and the samples that fit in the
-    trajectory's duration). Raises SyncError when no offset qualifies.
+    trajectory's duration). With a `prior`, only offsets inside its windows are
+    kept. Raises SyncError when no offset qualifies.
     """
     traj_t = np.asarray(traj_t_s, dtype=np.float64)
     traj_z = np.asarray(traj_z_m, dtype=np.float64)
@@ -236,13 +284,17 @@ def coarse_offset_search(
     interval = sample_interval_s(dive_t)
     possible = min(dive_t.size, (traj_t[-1] - traj_t[0]) / interval + 1.0)
     need = max(3.0, min_overlap_fraction * possible)
-    ok = (n >= need) & (np.abs(offsets - centre_offset_s) <= max_offset_s)
+    searched = np.abs(offsets - centre_offset_s) <= max_offset_s
+    where = f"within {centre_offset_s:+.0f} +- {max_offset_s:.0f} s"
+    if prior is not None:
+        searched &= prior.contains(offsets)
+        where += f" and the clock prior {prior.describe()}"
+    ok = (n >= need) & searched
     if not np.any(ok):
-        best_n = int(n[np.abs(offsets - centre_offset_s) <= max_offset_s].max(initial=0))
+        best_n = int(n[searched].max(initial=0))
         raise SyncError(
-            f"no clock offset within {centre_offset_s:+.0f} +- {max_offset_s:.0f} s puts "
-            f"{need:.0f} dive samples inside the trajectory (at most {best_n}); the dive "
-            "does not overlap the trajectory"
+            f"no clock offset {where} puts {need:.0f} dive samples inside the trajectory "
+            f"(at most {best_n}); the dive does not overlap the trajectory"
         )
     score = np.where(ok, rms, np.inf)
     # Local minima of the score, best first, at least a sample interval apart.
@@ -445,6 +497,7 @@ def fit_depth_sync(
         inliers=int(np.count_nonzero(inlier)),
         robust_scale_m=scale_m,
         covariance=cov,
+        residuals_m=r,
     )
 
 
@@ -475,3 +528,394 @@ def depth_variation_m(
     inside = (traj_t >= u[use].min()) & (traj_t <= u[use].max())
     zlo, zhi = np.percentile(traj_z[inside], [5, 95]) if np.any(inside) else (0.0, 0.0)
     return float(hi - lo), float(zhi - zlo)
+
+
+# Ambiguity: does the data single out one clock offset?
+#
+# A long dive leaves one offset standing: any other one misplaces hundreds of
+# samples. A minute of video holds six 10 s samples, and with the depth offset
+# free a nearly flat stretch of z also matches the safety stop or the other
+# dive of the day, a few hundred seconds or hours away. The fits of every
+# coarse candidate (of every dive) are compared at one common noise scale; the
+# answer counts as known only when each clearly different offset fits worse
+# by a margin, enough samples overlap, the depth varies there, and the
+# offset's own uncertainty is small.
+
+DEPTH_RESOLUTION_M = 0.1
+EXPECTED_NOISE_M = math.hypot(QUANTISATION_SIGMA_M, 0.05)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AmbiguityLimits:
+    """When a clock offset counts as known (the thresholds of `assess_offset`).
+
+    min_evidence: the best fit must beat every clearly different offset by this
+        much: samples x the difference of mean Huber costs (`mean_huber_cost`).
+        For Gaussian residuals it is half the chi-square gap, a log-likelihood
+        ratio: 10 means odds of about 2e4 to 1.
+    min_samples: dive samples inside the trajectory at the solution (a fit has
+        two or three free parameters, so fewer leave nothing to test it).
+    min_separation_s: offsets closer than max(this, 3 sigma of the best) are
+        one solution, seconds.
+    min_depth_range_m: the overlapping dive depths and trajectory z must both
+        span this much (5-95 percentile), metres.
+    max_time_sigma_s: the offset's one-sigma uncertainty must be below this, s.
+    noise_sigma_m: expected depth noise (quantisation, lever arm), metres: the
+        scale candidates are ranked at and the least scale costs are compared at.
+    resolution_m: the dive computer's depth resolution, metres (for the
+        excursion in steps).
+    huber_k: Huber threshold in units of the scale.
+    """
+
+    min_evidence: float = 6.0
+    min_samples: int = 4
+    min_separation_s: float = 3.0
+    min_depth_range_m: float = 1.0
+    max_time_sigma_s: float = 5.0
+    noise_sigma_m: float = EXPECTED_NOISE_M
+    resolution_m: float = DEPTH_RESOLUTION_M
+    huber_k: float = 1.345
+
+
+@dataclass(frozen=True)
+class Solution:
+    """One fitted clock solution: the dive it uses (index into the caller's dives) and the fit.
+
+    depth_range_m, z_range_m: 5-95 percentile spans of the overlapping dive
+    depths and of the trajectory z there, metres (`depth_variation_m`).
+    """
+
+    dive: int
+    sync: DepthSync
+    depth_range_m: float
+    z_range_m: float
+
+
+@dataclass(frozen=True)
+class OffsetAmbiguity:
+    """How well the data single out the chosen clock offset.
+
+    samples: dive samples inside the trajectory at the chosen offset.
+    depth_range_m, z_range_m: their depth span and the trajectory z span (5-95 %), m.
+    excursion_steps: depth_range_m in steps of the depth resolution.
+    time_offset_sigma_s: one-sigma uncertainty of the offset (curvature of the fit), s.
+    cost_sigma_m: the noise scale the costs below are measured at, metres: the
+        larger of the expected noise and the chosen fit's robust scale.
+    best_cost: mean Huber cost of the chosen fit (0.5 (r/sigma)^2 inside the
+        threshold, linear beyond).
+    runner_up_*: the best fit at a clearly different offset (or another dive):
+        its offset (s), dive index, mean cost and depth offset (m); None when
+        there is none.
+    evidence: samples x (runner_up_cost - best_cost); inf without a runner-up.
+    solutions: distinct offsets compared (the chosen one included).
+    reasons: why the offset is not known; empty when it is.
+    """
+
+    samples: int
+    depth_range_m: float
+    z_range_m: float
+    excursion_steps: float
+    time_offset_sigma_s: float
+    cost_sigma_m: float
+    best_cost: float
+    runner_up_offset_s: float | None
+    runner_up_dive: int | None
+    runner_up_cost: float | None
+    runner_up_depth_offset_m: float | None
+    evidence: float
+    solutions: int
+    reasons: tuple[str, ...]
+
+    @property
+    def ambiguous(self) -> bool:
+        """True when the data do not single out one offset."""
+        return bool(self.reasons)
+
+
+def mean_huber_cost(residuals_m: FloatArray, sigma_m: float, k: float = 1.345) -> float:
+    """Mean Huber loss of residuals (metres) at scale `sigma_m`; inf for no residual."""
+    if residuals_m.size == 0:
+        return math.inf
+    a = np.abs(residuals_m) / sigma_m
+    rho = np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
+    return float(np.mean(rho))
+
+
+def assess_offset(
+    solutions: list[Solution], limits: AmbiguityLimits | None = None
+) -> tuple[Solution, OffsetAmbiguity]:
+    """The best solution and how ambiguous it is.
+
+    The best is the one of least mean Huber cost at `limits.noise_sigma_m` (a
+    common, fixed scale: each fit's own robust scale is no measure to choose
+    by, since with a handful of samples a wrong offset can declare a third of
+    them outliers and fit the rest exactly). Raises ValueError for no solution.
+    """
+    if not solutions:
+        raise ValueError("assess_offset: no solution to assess")
+    lim = limits or AmbiguityLimits()
+    k = lim.huber_k
+    ranked = sorted(
+        solutions, key=lambda s: mean_huber_cost(s.sync.residuals_m, lim.noise_sigma_m, k)
+    )
+    best = ranked[0]
+    sync = best.sync
+    sigma_t = sync.time_offset_sigma_s
+    cost_sigma = max(lim.noise_sigma_m, sync.robust_scale_m)
+    best_cost = mean_huber_cost(sync.residuals_m, cost_sigma, k)
+    separation = max(lim.min_separation_s, 3.0 * sigma_t if math.isfinite(sigma_t) else 0.0)
+    others = [
+        s
+        for s in ranked[1:]
+        if s.dive != best.dive or abs(s.sync.time_offset_s - sync.time_offset_s) > separation
+    ]
+    distinct: list[Solution] = []
+    for s in others:
+        if not any(
+            s.dive == d.dive and abs(s.sync.time_offset_s - d.sync.time_offset_s) <= separation
+            for d in distinct
+        ):
+            distinct.append(s)
+    runner: Solution | None = None
+    runner_cost = math.inf
+    for s in distinct:
+        cost = mean_huber_cost(s.sync.residuals_m, cost_sigma, k)
+        if cost < runner_cost:
+            runner, runner_cost = s, cost
+    evidence = sync.used * (runner_cost - best_cost) if runner is not None else math.inf
+
+    reasons = []
+    if sync.used < lim.min_samples:
+        reasons.append(
+            f"only {sync.used} dive samples overlap the trajectory (need {lim.min_samples})"
+        )
+    if min(best.depth_range_m, best.z_range_m) < lim.min_depth_range_m:
+        reasons.append(
+            f"the depth profile is too flat to find the clock offset (depth spans "
+            f"{best.depth_range_m:.2f} m, trajectory z {best.z_range_m:.2f} m where they overlap;"
+            f" need {lim.min_depth_range_m:.2f} m)"
+        )
+    if runner is not None and not evidence >= lim.min_evidence:
+        reasons.append(
+            f"another offset fits almost as well: {sync.time_offset_s:+.1f} s (depth of the "
+            f"trajectory origin {sync.depth_offset_m:.2f} m) against "
+            f"{runner.sync.time_offset_s:+.1f} s ({runner.sync.depth_offset_m:.2f} m), "
+            f"evidence {evidence:.1f} (need {lim.min_evidence:.1f})"
+        )
+    if not sigma_t <= lim.max_time_sigma_s:
+        reasons.append(
+            f"the clock offset is undetermined ({sync.time_offset_s:.1f} +- {sigma_t:.1f} s: "
+            "nothing to correlate)"
+        )
+    ambiguity = OffsetAmbiguity(
+        samples=sync.used,
+        depth_range_m=best.depth_range_m,
+        z_range_m=best.z_range_m,
+        excursion_steps=best.depth_range_m / lim.resolution_m,
+        time_offset_sigma_s=sigma_t,
+        cost_sigma_m=cost_sigma,
+        best_cost=best_cost,
+        runner_up_offset_s=None if runner is None else runner.sync.time_offset_s,
+        runner_up_dive=None if runner is None else runner.dive,
+        runner_up_cost=None if runner is None else runner_cost,
+        runner_up_depth_offset_m=None if runner is None else runner.sync.depth_offset_m,
+        evidence=evidence,
+        solutions=1 + len(distinct),
+        reasons=tuple(reasons),
+    )
+    return best, ambiguity
+
+
+@dataclass(frozen=True)
+class ClockSolution:
+    """The clock offset found, how ambiguous it is, and whether the clock prior decided it.
+
+    dive: index of the dive used (into the caller's list); sync: its fit.
+    ambiguity: of the answer given (measured inside the prior when it was used);
+        when `ambiguity.ambiguous`, the answer is not to be trusted.
+    search_ambiguity: of the unrestricted search.
+    prior: the clock prior (None when there is none); prior_used: the answer
+        comes from the search restricted to the prior's windows (the
+        unrestricted one was ambiguous); prior_distance_s: the answer's distance
+        from the prior's nearest centre (None without a prior).
+    candidates: coarse candidates of the chosen dive, best first.
+    """
+
+    dive: int
+    sync: DepthSync
+    ambiguity: OffsetAmbiguity
+    search_ambiguity: OffsetAmbiguity
+    prior: ClockPrior | None
+    prior_used: bool
+    prior_distance_s: float | None
+    candidates: list[CoarseCandidate]
+
+
+def _fitted_solutions(
+    traj_t: FloatArray,
+    traj_z: FloatArray,
+    dives: list[tuple[FloatArray, FloatArray]],
+    *,
+    prior: ClockPrior | None,
+    search: dict[str, float],
+    fit: dict[str, float | bool],
+    candidates: int,
+    labels: list[str],
+) -> tuple[list[Solution], dict[int, list[CoarseCandidate]], list[str]]:
+    solutions: list[Solution] = []
+    coarse_by_dive: dict[int, list[CoarseCandidate]] = {}
+    failures: list[str] = []
+    for index, (dive_t, depth) in enumerate(dives):
+        try:
+            coarse = coarse_offset_search(
+                traj_t,
+                traj_z,
+                dive_t,
+                depth,
+                max_offset_s=search["max_offset_s"],
+                step_s=search["step_s"],
+                min_overlap_fraction=search["min_overlap_fraction"],
+                max_gap_s=search["max_gap_s"],
+                candidates=candidates,
+                prior=prior,
+            )
+        except SyncError as error:
+            failures.append(f"{labels[index]}: {error}")
+            continue
+        coarse_by_dive[index] = coarse.candidates
+        for candidate in coarse.candidates:
+            try:
+                sync = fit_depth_sync(
+                    traj_t,
+                    traj_z,
+                    dive_t,
+                    depth,
+                    initial_offset_s=candidate.offset_s,
+                    max_gap_s=search["max_gap_s"],
+                    **fit,  # type: ignore[arg-type]
+                )
+            except SyncError:
+                continue
+            if prior is not None and not bool(prior.contains(sync.time_offset_s)):
+                continue  # the fit walked out of the prior's window
+            depth_range, z_range = depth_variation_m(
+                traj_t, traj_z, dive_t, depth, sync, max_gap_s=search["max_gap_s"]
+            )
+            solutions.append(Solution(index, sync, depth_range, z_range))
+    return solutions, coarse_by_dive, failures
+
+
+def solve_clock_offset(
+    traj_t_s: npt.ArrayLike,
+    traj_z_m: npt.ArrayLike,
+    dives: list[tuple[npt.ArrayLike, npt.ArrayLike]],
+    *,
+    max_offset_s: float,
+    prior: ClockPrior | None = None,
+    limits: AmbiguityLimits | None = None,
+    labels: list[str] | None = None,
+    step_s: float = 1.0,
+    min_overlap_fraction: float = 0.5,
+    max_gap_s: float = 5.0,
+    candidates: int = 5,
+    estimate_drift: bool = True,
+    estimate_scale: bool = False,
+    drift_prior_sigma_ppm: float = 50.0,
+) -> ClockSolution:
+    """Find the clock offset against one or more dives, and say whether it is known.
+
+    `dives` holds (dive_t_s, dive_depth_m) pairs in the relative time base of
+    the module docstring. Every dive is searched over +-`max_offset_s`
+    (`coarse_offset_search`), every candidate fitted (`fit_depth_sync`), and the
+    fits compared (`assess_offset`). When that is ambiguous and a `prior` is
+    given, the search is repeated inside the prior's windows; its best answer
+    is taken when it is unambiguous there and the unrestricted search does not
+    rule it out (no fit outside beats it by `limits.min_evidence`). The result
+    may still be ambiguous: the caller decides what to do then.
+
+    Raises SyncError when no dive overlaps the trajectory at any offset.
+    """
+    traj_t = np.asarray(traj_t_s, dtype=np.float64)
+    traj_z = np.asarray(traj_z_m, dtype=np.float64)
+    arrays = [(np.asarray(t, dtype=np.float64), np.asarray(d, dtype=np.float64)) for t, d in dives]
+    names = labels if labels is not None else [f"dive {k}" for k in range(len(arrays))]
+    lim = limits or AmbiguityLimits()
+    search = {
+        "max_offset_s": max_offset_s,
+        "step_s": step_s,
+        "min_overlap_fraction": min_overlap_fraction,
+        "max_gap_s": max_gap_s,
+    }
+    fit: dict[str, float | bool] = {
+        "estimate_drift": estimate_drift,
+        "estimate_scale": estimate_scale,
+        "drift_prior_sigma_ppm": drift_prior_sigma_ppm,
+    }
+    solutions, coarse, failures = _fitted_solutions(
+        traj_t,
+        traj_z,
+        arrays,
+        prior=None,
+        search=search,
+        fit=fit,
+        candidates=candidates,
+        labels=names,
+    )
+    if not solutions:
+        raise SyncError("; ".join(failures) or "no fit converged")
+    best, ambiguity = assess_offset(solutions, lim)
+
+    def distance(offset_s: float) -> float | None:
+        return None if prior is None else float(prior.distance_s(offset_s))
+
+    answer = ClockSolution(
+        dive=best.dive,
+        sync=best.sync,
+        ambiguity=ambiguity,
+        search_ambiguity=ambiguity,
+        prior=prior,
+        prior_used=False,
+        prior_distance_s=distance(best.sync.time_offset_s),
+        candidates=coarse[best.dive],
+    )
+    if not ambiguity.ambiguous or prior is None:
+        return answer
+    inside, inside_coarse, _ = _fitted_solutions(
+        traj_t,
+        traj_z,
+        arrays,
+        prior=prior,
+        search=search,
+        fit=fit,
+        candidates=candidates,
+        labels=names,
+    )
+    if not inside:
+        return answer
+    chosen, inside_ambiguity = assess_offset(inside, lim)
+    # The data outside the prior may still rule its answer out.
+    sigma = ambiguity.cost_sigma_m
+    gap = chosen.sync.used * (
+        mean_huber_cost(chosen.sync.residuals_m, sigma, lim.huber_k)
+        - mean_huber_cost(best.sync.residuals_m, sigma, lim.huber_k)
+    )
+    if gap >= lim.min_evidence:
+        inside_ambiguity = dataclasses.replace(
+            inside_ambiguity,
+            reasons=(
+                *inside_ambiguity.reasons,
+                f"the best offset inside the clock prior ({chosen.sync.time_offset_s:+.1f} s) "
+                f"fits clearly worse than {best.sync.time_offset_s:+.1f} s outside it "
+                f"(evidence {gap:.1f})",
+            ),
+        )
+    return ClockSolution(
+        dive=chosen.dive,
+        sync=chosen.sync,
+        ambiguity=inside_ambiguity,
+        search_ambiguity=ambiguity,
+        prior=prior,
+        prior_used=True,
+        prior_distance_s=distance(chosen.sync.time_offset_s),
+        candidates=inside_coarse[chosen.dive],
+    )

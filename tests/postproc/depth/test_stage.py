@@ -42,6 +42,20 @@ def test_stage_picks_the_overlapping_dive_and_writes_outputs(tmp_path):
     for key in ("time_offset_sigma_s", "drift_sigma_ppm", "depth_offset_sigma_m", "residual_rms_m"):
         assert doc[key] > 0.0
     assert doc["depth_scale_free"]["value"] == pytest.approx(1.0, abs=0.05)
+    # A long dive: one offset stands out by far; the earlier dives are the runners-up.
+    ambiguity = doc["offset_ambiguity"]
+    assert ambiguity["ambiguous"] is False and ambiguity["samples"] == doc["samples_used"]
+    assert ambiguity["evidence"] > 100 * DepthOptions().min_evidence
+    assert ambiguity["time_offset_sigma_s"] == doc["time_offset_sigma_s"]
+    assert doc["clock_prior"] == {
+        "available": True,
+        "used": False,
+        "window_s": 300.0,
+        "zone_step_s": 900.0,
+        "distance_s": pytest.approx(12.5, abs=0.5),
+        "inside": True,
+        "relation": doc["clock_prior"]["relation"],
+    }
     world = read_tum(out / "trajectory_world.tum")
     fused = read_tum(out / "trajectory_world_fused.tum")
     true_z = sim.truth_world.positions[:, 2]
@@ -142,6 +156,33 @@ def test_bad_options_are_refused(tmp_path):
         run(DepthOptions(max_offset_s=-1.0), trajectory, dives, tmp_path / "out")
     with pytest.raises(StageError, match="unknown method"):
         run(DepthOptions(method="magic"), trajectory, dives, tmp_path / "out")  # type: ignore[arg-type]
+    bad = {
+        "clock_prior_window_s": (0.0, "clock_prior_window_s must be a positive"),
+        "clock_prior_zone_step_s": (-900.0, "clock_prior_zone_step_s must be 0 or more"),
+        "min_evidence": (float("nan"), "min_evidence must be 0 or more"),
+        "min_overlap_samples": (2, "min_overlap_samples must be at least 3"),
+    }
+    for name, (value, message) in bad.items():
+        options = DepthOptions()
+        setattr(options, name, value)
+        with pytest.raises(StageError, match=message):
+            run(options, trajectory, dives, tmp_path / "out")
+
+
+def test_clock_far_from_the_prior_is_kept_with_a_warning(tmp_path, caplog):
+    # 7.5 min past a quarter hour: outside the prior, but a long dive leaves no doubt.
+    sim = simulate_dive(seed=42, time_offset_s=2 * 3600.0 + 450.0, trajectory_duration_s=900.0)
+    trajectory, dives = write_inputs(tmp_path, sim)
+    with caplog.at_level("WARNING", logger="postproc.depth.stage"):
+        doc = json.loads(
+            run(
+                DepthOptions(fuse=False, plot=False), trajectory, dives, tmp_path / "out"
+            ).read_text()
+        )
+    assert abs(doc["time_offset_s"] - sim.time_offset_s) < 0.5
+    assert doc["clock_prior"]["used"] is False and doc["clock_prior"]["inside"] is False
+    assert doc["clock_prior"]["distance_s"] == pytest.approx(450.0, abs=1.0)
+    assert "further off than expected" in caplog.text
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:

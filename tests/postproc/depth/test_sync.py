@@ -2,11 +2,24 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from postproc.depth.simulate import simulate_dive
-from postproc.depth.sync import SyncError, coarse_offset_search, fit_depth_sync
+from postproc.depth.sync import (
+    AmbiguityLimits,
+    ClockPrior,
+    DepthSync,
+    Solution,
+    SyncError,
+    assess_offset,
+    coarse_offset_search,
+    fit_depth_sync,
+    mean_huber_cost,
+    solve_clock_offset,
+)
 
 from .inputs import relative_inputs
 
@@ -108,3 +121,132 @@ def test_bad_shapes_raise():
         fit_depth_sync(
             np.array([0.0, 0.0, 1.0]), np.zeros(3), np.zeros(3), np.zeros(3), initial_offset_s=0.0
         )
+
+
+def test_clock_prior_windows_repeat_by_zone_step():
+    prior = ClockPrior(window_s=300.0, zone_step_s=900.0)
+    offsets = np.array([0.0, -299.0, 301.0, 3600.0 + 120.0, -5400.0 - 250.0, 450.0])
+    np.testing.assert_allclose(prior.distance_s(offsets), [0.0, 299.0, 301.0, 120.0, 250.0, 450.0])
+    np.testing.assert_array_equal(prior.contains(offsets), [True, True, False, True, True, False])
+    same_zone = ClockPrior(window_s=60.0, centre_offset_s=10.0)
+    np.testing.assert_array_equal(same_zone.contains([10.0, 70.0, 71.0, 3610.0]), [1, 1, 0, 0])
+    assert "+- 300 s" in prior.describe() and "900 s zone" in prior.describe()
+
+
+def test_coarse_search_inside_the_prior_only():
+    sim = simulate_dive(seed=10, time_offset_s=2 * 3600.0 + 40.0)
+    traj_t, traj_z, dive_t, depth = relative_inputs(sim)
+    prior = ClockPrior(window_s=120.0, zone_step_s=3600.0)
+    coarse = coarse_offset_search(
+        traj_t, traj_z, dive_t, depth, max_offset_s=15 * 3600.0, prior=prior
+    )
+    assert np.all(prior.contains(coarse.offsets_s))
+    assert all(prior.contains(c.offset_s) for c in coarse.candidates)
+    assert abs(coarse.candidates[0].offset_s - sim.time_offset_s) <= 2.0
+    # A prior that excludes every overlapping offset leaves nothing to search.
+    with pytest.raises(SyncError, match=r"clock prior \+0 \+- 60 s.*does not overlap"):
+        coarse_offset_search(
+            traj_t,
+            traj_z,
+            dive_t,
+            depth,
+            max_offset_s=15 * 3600.0,
+            prior=ClockPrior(window_s=60.0, centre_offset_s=0.0),
+        )
+
+
+def test_mean_huber_cost():
+    r = np.array([0.01, -0.02, 0.03])
+    assert mean_huber_cost(r, 0.1) == pytest.approx(np.mean(0.5 * (r / 0.1) ** 2))
+    # Linear beyond the threshold: a 1 m spike costs k (1/sigma - k/2), not 0.5 / sigma^2.
+    assert mean_huber_cost(np.array([1.0]), 0.1, k=1.345) == pytest.approx(1.345 * (10 - 0.6725))
+    assert mean_huber_cost(np.zeros(0), 0.1) == math.inf
+
+
+def _sync(offset_s, residuals, *, sigma_s=0.2, depth_offset_m=10.0, robust_scale_m=0.03):
+    r = np.asarray(residuals, dtype=np.float64)
+    return DepthSync(
+        time_offset_s=offset_s,
+        drift_ppm=0.0,
+        depth_offset_m=depth_offset_m,
+        depth_scale=1.0,
+        residual_rms_m=float(np.sqrt(np.mean(r * r))),
+        time_offset_sigma_s=sigma_s,
+        drift_sigma_ppm=1.0,
+        depth_offset_sigma_m=0.01,
+        depth_scale_sigma=0.0,
+        used=r.size,
+        inliers=r.size,
+        robust_scale_m=robust_scale_m,
+        covariance=np.zeros((4, 4)),
+        residuals_m=r,
+    )
+
+
+def test_assess_offset_weighs_the_runner_up():
+    rng = np.random.default_rng(3)
+    good = rng.normal(0.0, 0.04, 6)
+    # A wrong offset that fits four samples exactly and two badly: its own robust
+    # scale is the smaller, yet at the common scale it is the worse fit.
+    wrong = np.array([0.0, 0.01, -0.01, 0.0, 0.35, -0.3])
+    solutions = [
+        Solution(0, _sync(232.0, wrong, depth_offset_m=5.1, robust_scale_m=0.029), 2.0, 2.1),
+        Solution(0, _sync(-112.0, good, depth_offset_m=14.5, robust_scale_m=0.05), 2.0, 2.1),
+        Solution(0, _sync(-111.0, 1.5 * good), 2.0, 2.1),  # the same solution, converged worse
+    ]
+    best, ambiguity = assess_offset(solutions)
+    assert best.sync.time_offset_s == -112.0
+    assert ambiguity.runner_up_offset_s == 232.0
+    assert ambiguity.runner_up_depth_offset_m == 5.1
+    assert ambiguity.solutions == 2
+    expected = 6 * (
+        mean_huber_cost(wrong, ambiguity.cost_sigma_m)
+        - mean_huber_cost(good, ambiguity.cost_sigma_m)
+    )
+    assert ambiguity.evidence == pytest.approx(expected)
+    assert ambiguity.excursion_steps == pytest.approx(20.0)
+    strict = AmbiguityLimits(min_evidence=expected + 1.0)
+    _, refused = assess_offset(solutions, strict)
+    assert refused.ambiguous
+    assert "another offset fits almost as well: -112.0 s" in refused.reasons[0]
+    assert not assess_offset(solutions, AmbiguityLimits(min_evidence=expected - 1.0))[1].ambiguous
+
+
+def test_assess_offset_reasons():
+    flat = Solution(1, _sync(10.0, [0.01, -0.01, 0.0, 0.02]), 0.3, 0.4)
+    _, ambiguity = assess_offset([flat])
+    assert ambiguity.runner_up_offset_s is None and ambiguity.evidence == math.inf
+    assert ambiguity.reasons == (
+        "the depth profile is too flat to find the clock offset (depth spans 0.30 m, "
+        "trajectory z 0.40 m where they overlap; need 1.00 m)",
+    )
+    few = Solution(0, _sync(10.0, [0.01, -0.01, 0.0], sigma_s=9.0), 3.0, 3.0)
+    _, ambiguity = assess_offset([few])
+    assert len(ambiguity.reasons) == 2
+    assert ambiguity.reasons[0].startswith("only 3 dive samples overlap")
+    assert ambiguity.reasons[1].startswith("the clock offset is undetermined (10.0 +- 9.0 s")
+    # Another dive at the same offset is a different solution.
+    other = Solution(1, _sync(10.0, [0.01, -0.01, 0.0, 0.02]), 3.0, 3.0)
+    best = Solution(0, _sync(10.0, [0.01, -0.01, 0.0, 0.01]), 3.0, 3.0)
+    _, ambiguity = assess_offset([best, other])
+    assert ambiguity.runner_up_dive == 1 and ambiguity.ambiguous
+    with pytest.raises(ValueError, match="no solution"):
+        assess_offset([])
+
+
+def test_solve_long_dive_is_unambiguous_and_ignores_the_prior():
+    sim = simulate_dive(seed=11, time_offset_s=3600.0 + 450.0, drift_ppm=-20.0, earlier_dives=1)
+    traj_t, traj_z, _, _ = relative_inputs(sim)
+    reference_s = sim.trajectory.stamps_ns[0] / 1e9
+    dives = [(d.stamps_s - reference_s, d.depth_m) for d in sim.dives]
+    prior = ClockPrior(window_s=300.0, zone_step_s=900.0)
+    solution = solve_clock_offset(traj_t, traj_z, dives, max_offset_s=15 * 3600.0, prior=prior)
+    assert solution.dive == sim.dive_index
+    assert abs(solution.sync.time_offset_s - sim.time_offset_s) < 0.5
+    assert not solution.ambiguity.ambiguous and solution.ambiguity.evidence > 100.0
+    assert solution.ambiguity is solution.search_ambiguity
+    # 450 s past a zone step is outside the prior: the data win, and it is said.
+    assert solution.prior_used is False
+    assert solution.prior_distance_s == pytest.approx(450.0, abs=1.0)
+    with pytest.raises(SyncError, match="dive 0: no clock offset"):
+        solve_clock_offset(traj_t, traj_z, dives[:1], max_offset_s=600.0)
