@@ -86,6 +86,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default="mad",
         help="outlier rejection of observations (default: median/MAD)",
     )
+    parser.add_argument(
+        "--no-drift-weighting",
+        action="store_true",
+        help="average a target's passes equally instead of leaning on the passes nearest the "
+        "session start (drift weighting, the default, places the session frame best; equal "
+        "weights overlay the sessions best at the targets)",
+    )
     parser.add_argument("--camera", default="cam0", help="camchain entry of the keyframes")
     parser.add_argument("--no-plot", action="store_true", help="skip the PNG views")
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
@@ -103,6 +110,7 @@ def _merge(args: argparse.Namespace) -> int:
         min_tags=args.min_tags,
         rotation_mean=args.rotation_mean,
         outlier_rule=args.outlier_rule,
+        drift_weighting=not args.no_drift_weighting,
         camera=args.camera,
         plot=not args.no_plot,
     )

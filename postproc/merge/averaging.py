@@ -21,10 +21,19 @@ median), so up to half of the observations may be outliers.
 
 `fuse_pose_estimates` combines a few independent estimates of one pose that
 each carry a covariance (information-weighted, Gauss-Newton on SE(3)).
+
+`drift_weighted_mean` re-weighs the inliers of one session by generalised
+least squares when the session's SLAM drifts as a random walk from where it
+defines its frame (`DriftModel`, fitted by `estimate_drift_model` from the
+scatter inside passes and the differences between passes): later passes
+repeat the drift of earlier ones, so the mean leans on the earliest, and its
+covariance includes the drift.
 """
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -339,3 +348,152 @@ def clustered_covariance(
         clustered if np.trace(clustered) > np.trace(average.covariance) else average.covariance
     )
     return 0.5 * (result + result.T)
+
+
+@dataclass(frozen=True)
+class DriftModel:
+    """Per-axis noise of pose observations taken from a drifting SLAM session.
+
+    An observation of a fixed pose at time τ (s since the session's anchor, where
+    the SLAM frame is defined) is `x + d(τ) + e`: `d` a random walk with
+    `drift_rate` (6,) variance per second (rad²/s, m²/s) starting at 0 at τ = 0,
+    `e` independent per observation with `noise` (6,) variance (rad², m²).
+    pass_pairs: how many pairs of consecutive passes the drift rate was measured
+    on (0: the rate is the prior).
+    """
+
+    drift_rate: FloatArray
+    noise: FloatArray
+    pass_pairs: int = 0
+
+
+def estimate_drift_model(
+    residuals: Sequence[FloatArray],
+    times_s: Sequence[FloatArray],
+    pass_ids: Sequence[npt.ArrayLike],
+    *,
+    prior_rate_rotation_rad2_per_s: float,
+    prior_rate_translation_m2_per_s: float,
+    prior_weight_pairs: float = 2.0,
+    min_rotation_sigma_rad: float = 2e-4,
+    min_translation_sigma_m: float = 2e-4,
+) -> DriftModel:
+    """Noise and drift rate of one session from its targets' inlier residuals.
+
+    residuals: per target, (N, 6) inlier residuals about that target's mean.
+    times_s: per target, (N,) seconds since the session anchor. pass_ids: per
+    target, (N,) pass labels (a pass: keyframes close in time).
+    Noise `s²` and rate `q` per axis solve two moment equations pooled over
+    targets: the scatter inside passes and the differences of consecutive pass
+    means (both exact for the model, see the code); the rate is then shrunk
+    toward the prior with the weight of `prior_weight_pairs` pairs. With no
+    pair of passes the rate is the prior.
+    Raises ValueError for mismatched lengths.
+    """
+    if not len(residuals) == len(times_s) == len(pass_ids):
+        raise ValueError("estimate_drift_model: residuals, times and pass ids differ in length")
+    floor = np.array([min_rotation_sigma_rad**2] * 3 + [min_translation_sigma_m**2] * 3)
+    prior = np.array([prior_rate_rotation_rad2_per_s] * 3 + [prior_rate_translation_m2_per_s] * 3)
+    # Moment equations per axis, exact for the random walk plus noise:
+    #   inside passes: E[sum (r - pass mean)²] = (n - 1) s² + q c,
+    #     c = sum τ - mean over (i, j) of min(τi, τj) (the drift inside the pass);
+    #   consecutive passes: E[(m2 - m1)²] = s² (1/n1 + 1/n2) + q (S1 + S2 - 2 τ̄1),
+    #     S = mean over (i, j) of min(τi, τj) within a pass.
+    within_ss = np.zeros(6)
+    within_dof = 0.0
+    within_drift = 0.0
+    between_ss = np.zeros(6)
+    between_noise = 0.0
+    between_drift = 0.0
+    pairs = 0
+    for r, t, p in zip(residuals, times_s, pass_ids, strict=True):
+        r = np.asarray(r, dtype=np.float64).reshape(-1, 6)
+        t = np.maximum(np.asarray(t, dtype=np.float64).reshape(-1), 0.0)
+        labels = np.asarray(p).reshape(-1)
+        if not r.shape[0] == t.shape[0] == labels.shape[0]:
+            raise ValueError("estimate_drift_model: residuals, times and pass ids differ in length")
+        target_passes = []
+        for label in np.unique(labels):
+            chosen = labels == label
+            n = int(np.count_nonzero(chosen))
+            mean = r[chosen].mean(axis=0)
+            shared = float(np.mean(np.minimum.outer(t[chosen], t[chosen])))
+            within_ss += np.sum((r[chosen] - mean) ** 2, axis=0)
+            within_dof += n - 1
+            within_drift += float(np.sum(t[chosen])) - n * shared
+            target_passes.append((float(t[chosen].mean()), n, mean, shared))
+        target_passes.sort(key=lambda x: x[0])
+        for (t1, n1, m1, s1), (_, n2, m2, s2) in itertools.pairwise(target_passes):
+            between_ss += (m2 - m1) ** 2
+            between_noise += 1.0 / n1 + 1.0 / n2
+            between_drift += s1 + s2 - 2.0 * t1
+            pairs += 1
+    if pairs and between_drift > 0 and within_dof > 0:
+        system = np.array([[within_dof, within_drift], [between_noise, between_drift]])
+        try:
+            solved = np.linalg.solve(system, np.vstack((within_ss, between_ss)))
+            noise, measured = solved[0], np.maximum(solved[1], 0.0)
+        except np.linalg.LinAlgError:
+            noise, measured = within_ss / within_dof, prior
+        if np.any(noise < floor):
+            # The data put (almost) everything into drift: keep the noise at its floor
+            # and let the passes' differences give the rate.
+            noise = np.maximum(noise, floor)
+            measured = np.maximum((between_ss - between_noise * noise) / between_drift, 0.0)
+        rate = (pairs * measured + prior_weight_pairs * prior) / (pairs + prior_weight_pairs)
+    else:
+        rate = prior
+        noise = (
+            np.maximum((within_ss - within_drift * prior) / within_dof, floor)
+            if within_dof > 0
+            else floor * 25.0
+        )
+    return DriftModel(drift_rate=rate, noise=noise, pass_pairs=pairs)
+
+
+def drift_weighted_mean(
+    poses: npt.ArrayLike,
+    times_s: npt.ArrayLike,
+    model: DriftModel,
+    *,
+    start: npt.ArrayLike,
+    observation_variance: npt.ArrayLike | None = None,
+    iterations: int = 2,
+) -> tuple[FloatArray, FloatArray]:
+    """Generalised least-squares mean of pose observations (N, 4, 4) from a drifting session.
+
+    Per axis the observations' covariance is `q min(τ_i, τ_j) + s_i δ_ij` (a
+    random walk from the anchor plus independent noise, `DriftModel`): a later
+    pass repeats the drift of an earlier one and adds its own, so it carries
+    less information about the pose in the anchored session frame, and the
+    result leans on the earliest observations. times_s: (N,) seconds since the
+    anchor (negative values count as 0). observation_variance: (N, 6) extra
+    per-observation variance (e.g. the PnP covariance's diagonal in the
+    session frame), added to `model.noise`. start: (4, 4) the linearisation
+    point (the robust mean). Returns (pose (4, 4), covariance (6, 6),
+    diagonal: the axes are treated as independent; drift included).
+    """
+    T = _as_poses(poses, "drift_weighted_mean")
+    n = T.shape[0]
+    tau = np.maximum(np.asarray(times_s, dtype=np.float64).reshape(-1), 0.0)
+    if tau.shape != (n,):
+        raise ValueError(f"drift_weighted_mean: expected ({n},) times, got {tau.shape}")
+    extra = (
+        np.zeros((n, 6))
+        if observation_variance is None
+        else np.asarray(observation_variance, dtype=np.float64).reshape(n, 6)
+    )
+    shared = np.minimum.outer(tau, tau)
+    mean = np.asarray(start, dtype=np.float64).copy()
+    variance = np.zeros(6)
+    for _ in range(max(iterations, 1)):
+        r = pose_residuals(T, mean)
+        step = np.zeros(6)
+        for k in range(6):
+            sigma = model.drift_rate[k] * shared + np.diag(model.noise[k] + extra[:, k])
+            solved = np.linalg.solve(sigma, np.column_stack((np.ones(n), r[:, k])))
+            information = float(np.sum(solved[:, 0]))
+            step[k] = float(np.sum(solved[:, 1])) / information
+            variance[k] = 1.0 / information
+        mean = make_pose(so3_exp(step[:3]) @ mean[:3, :3], mean[:3, 3] + step[3:])
+    return mean, np.diag(variance)

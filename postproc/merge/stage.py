@@ -8,12 +8,18 @@ grids share a wreck). Each target's name is its YAML file's stem.
 Per keyframe: detect the tags, assign them to targets, PnP over all the
 corners of each target at once (through the camera model), and
 `T_S_m = T_S_C @ T_C_m`. Per session and target: a robust mean with its
-covariance (`averaging.robust_pose_mean`). Then sessions are placed in the
-reference session's frame (`align.place_sessions`): 4 DoF (yaw and
-translation) when the sessions are depth-fused (gravity-aligned with
-absolute z), otherwise 6 DoF. `method="paper"` runs the paper's recipe
-instead (`paper.py`): per-tag poses, one-sigma rejection, Euler averaging,
-sessions placed only through targets shared with the reference.
+covariance (`averaging.robust_pose_mean`) picks the inliers. The SLAM drifts
+from where it defines its frame (the session's first pose), so a keyframe far
+in time from that anchor tells less about the target's pose in the frame: a
+random-walk drift model, fitted per session from the passes over its targets,
+weighs the inliers by generalised least squares and gives a covariance that
+includes the drift (`averaging.estimate_drift_model`, `drift_weighted_mean`).
+Then sessions are placed in the reference session's frame
+(`align.place_sessions`): 4 DoF (yaw and translation) when the sessions are
+depth-fused (gravity-aligned with absolute z), otherwise 6 DoF.
+`method="paper"` runs the paper's recipe instead (`paper.py`): per-tag poses,
+one-sigma rejection, Euler averaging, sessions placed only through targets
+shared with the reference.
 
 Depth-fused sessions: when a folder's depth stage output is found beside it
 (`<slam>/depth/` or `<slam>/../depth/` holding `trajectory_world_fused.tum`
@@ -59,7 +65,10 @@ from postproc.merge.align import (
 from postproc.merge.averaging import (
     PoseAverage,
     clustered_covariance,
+    drift_weighted_mean,
+    estimate_drift_model,
     fuse_pose_estimates,
+    pose_residuals,
     robust_pose_mean,
 )
 from postproc.merge.detect import DetectionOptions
@@ -104,6 +113,17 @@ class MergeOptions:
         target's mean counts passes, not keyframes (`averaging.clustered_covariance`).
     drift_rotation_sigma_deg / drift_translation_sigma_m: the SLAM drift of one
         pass assumed before the data are seen (1 sigma, degrees and metres).
+    drift_weighting: (ours) weigh each target's observations by the SLAM's drift
+        growth: a random walk from the session's anchor (the first pose of
+        `trajectory.tum`, else of `keyframes.tum`) plus per-keyframe noise, fitted
+        by generalised least squares (`averaging.drift_weighted_mean`); the
+        covariance then includes the drift. Used in sessions where some target
+        was filmed in two passes (`pass_gap_s` apart), which measures the drift.
+        False: the robust means as they are.
+    drift_rate_rotation_deg_per_sqrt_s / drift_rate_translation_m_per_sqrt_s: the
+        prior drift rate (1 sigma per axis after one second, growing with the square
+        root of time); each session's own rate is measured from the differences
+        between passes over the same target and shrunk toward this prior.
     camera: the camchain entry that took the keyframes.
     plot: write the top and side views.
     detection: tag detection settings.
@@ -122,6 +142,9 @@ class MergeOptions:
     pass_gap_s: float = 5.0
     drift_rotation_sigma_deg: float = 0.2
     drift_translation_sigma_m: float = 0.02
+    drift_weighting: bool = True
+    drift_rate_rotation_deg_per_sqrt_s: float = 0.02
+    drift_rate_translation_m_per_sqrt_s: float = 0.003
     camera: str = "cam0"
     plot: bool = True
     detection: DetectionOptions = field(default_factory=DetectionOptions)
@@ -138,6 +161,7 @@ class Session:
     images: dict[int, Path]
     depth_fused: bool = False
     keyframes_slam: Trajectory | None = None
+    anchor_ns: int = 0
 
 
 @dataclass
@@ -152,6 +176,7 @@ class Observation:
     reprojection_rms_px: float
     session_from_target: FloatArray
     paper_session_from_target: FloatArray | None = None
+    pnp_variance: FloatArray | None = None
 
 
 def run(
@@ -273,6 +298,8 @@ def _check_options(
         "pass_gap_s",
         "drift_rotation_sigma_deg",
         "drift_translation_sigma_m",
+        "drift_rate_rotation_deg_per_sqrt_s",
+        "drift_rate_translation_m_per_sqrt_s",
     ):
         value = getattr(options, name)
         if not (value > 0 and np.isfinite(value)):
@@ -351,6 +378,7 @@ def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Sessi
                 len(keyframes),
             )
         session = Session(name, folder, cameras[options.camera].camera, keyframes, images)
+        session.anchor_ns = _anchor_ns(folder, keyframes)
         _apply_depth(options, session)
         sessions.append(session)
     fused = [s.depth_fused for s in sessions]
@@ -362,6 +390,24 @@ def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Sessi
         for session in sessions:
             _undo_depth(session)
     return sessions
+
+
+def _anchor_ns(folder: Path, keyframes: Trajectory) -> int:
+    """Where the SLAM frame is defined (its drift is zero): the first pose of the session.
+
+    The first stamp of `trajectory.tum` when it is there and readable (every
+    tracked frame), else the first keyframe.
+    """
+    from shared.formats.tum import read_tum
+
+    first = int(keyframes.stamps_ns[0])
+    path = folder / "trajectory.tum"
+    if path.is_file():
+        try:
+            return min(first, int(read_tum(path).stamps_ns[0]))
+        except InputError:
+            log.warning("%s: unreadable, the session anchor is the first keyframe", path)
+    return first
 
 
 def find_depth_world(folder: Path) -> Path | None:
@@ -464,6 +510,14 @@ def _observe(
                         if cam_from_target is None:
                             continue
                         paper_pose = session_from_cam @ cam_from_target
+                    # The PnP covariance's diagonal in the session frame (rotation, then
+                    # translation: both rotate with the camera).
+                    rotation = session_from_cam[:3, :3]
+                    pnp = np.zeros(6)
+                    for block in (slice(0, 3), slice(3, 6)):
+                        pnp[block] = np.diag(
+                            rotation @ estimate.covariance[block, block] @ rotation.T
+                        )
                     observations.append(
                         Observation(
                             session=session.name,
@@ -474,6 +528,7 @@ def _observe(
                             reprojection_rms_px=estimate.reprojection_rms_px,
                             session_from_target=session_from_cam @ estimate.cam_from_target,
                             paper_session_from_target=paper_pose,
+                            pnp_variance=pnp if np.all(np.isfinite(pnp)) else None,
                         )
                     )
     finally:
@@ -496,9 +551,15 @@ def _average_ours(
     target_names: Sequence[str],
     observations: Sequence[Observation],
 ) -> dict[str, dict[str, PoseAverage]]:
+    """Per session and target: robust mean (outliers out), then the drift-weighted mean.
+
+    The drift model (per-keyframe noise, drift rate) is fitted once per session
+    over all its targets' inliers, since the targets share that session's SLAM.
+    """
     averages: dict[str, dict[str, PoseAverage]] = {}
     for session in sessions:
         averages[session.name] = {}
+        robust: dict[str, tuple[list[Observation], PoseAverage, npt.NDArray[np.int64]]] = {}
         for name in target_names:
             chosen = [o for o in observations if o.session == session.name and o.target == name]
             if not chosen:
@@ -519,8 +580,60 @@ def _average_ours(
                 prior_rotation_sigma_rad=np.deg2rad(options.drift_rotation_sigma_deg),
                 prior_translation_sigma_m=options.drift_translation_sigma_m,
             )
-            averages[session.name][name] = dataclasses.replace(average, covariance=covariance)
+            robust[name] = (chosen, dataclasses.replace(average, covariance=covariance), passes)
+        if not options.drift_weighting:
+            averages[session.name] = {name: value[1] for name, value in robust.items()}
+            continue
+        anchor_ns = session.anchor_ns
+        model = estimate_drift_model(
+            [average.residuals[average.inliers] for _, average, _ in robust.values()],
+            [_seconds(c, anchor_ns)[average.inliers] for c, average, _ in robust.values()],
+            [passes[average.inliers] for _, average, passes in robust.values()],
+            prior_rate_rotation_rad2_per_s=np.deg2rad(options.drift_rate_rotation_deg_per_sqrt_s)
+            ** 2,
+            prior_rate_translation_m2_per_s=options.drift_rate_translation_m_per_sqrt_s**2,
+        )
+        if model.pass_pairs == 0:
+            # No target filmed in two passes: the session's drift is not measured, and
+            # the prior alone should not reweigh keyframes; keep the robust means.
+            log.info("%s: no target seen in two passes: drift not measured", session.name)
+            averages[session.name] = {name: value[1] for name, value in robust.items()}
+            continue
+        log.info(
+            "%s: keyframe noise %.3f deg, %.1f mm; drift %.4f deg, %.2f mm per sqrt(s) "
+            "(from %d pass pairs)",
+            session.name,
+            np.rad2deg(np.sqrt(np.mean(model.noise[:3]))),
+            1e3 * np.sqrt(np.mean(model.noise[3:])),
+            np.rad2deg(np.sqrt(np.mean(model.drift_rate[:3]))),
+            1e3 * np.sqrt(np.mean(model.drift_rate[3:])),
+            model.pass_pairs,
+        )
+        for name, (chosen, average, _) in robust.items():
+            inliers = average.inliers
+            extra = np.array(
+                [o.pnp_variance if o.pnp_variance is not None else np.zeros(6) for o in chosen]
+            )
+            pose, covariance = drift_weighted_mean(
+                np.array([o.session_from_target for o in chosen])[inliers],
+                _seconds(chosen, anchor_ns)[inliers],
+                model,
+                start=average.pose,
+                observation_variance=extra[inliers],
+            )
+            averages[session.name][name] = dataclasses.replace(
+                average,
+                pose=pose,
+                covariance=covariance,
+                residuals=pose_residuals(np.array([o.session_from_target for o in chosen]), pose),
+            )
     return averages
+
+
+def _seconds(chosen: Sequence[Observation], anchor_ns: int) -> FloatArray:
+    """Seconds (N,) from the session anchor to each observation."""
+    stamps = np.array([o.stamp_ns for o in chosen], dtype=np.int64)
+    return np.asarray((stamps - anchor_ns) / 1e9, dtype=np.float64)
 
 
 def pass_labels(stamps_ns: Sequence[int], *, gap_s: float) -> npt.NDArray[np.int64]:
@@ -538,7 +651,6 @@ def _average_paper(
     target_names: Sequence[str],
     observations: Sequence[Observation],
 ) -> dict[str, dict[str, PoseAverage]]:
-    from postproc.merge.averaging import pose_residuals
     from postproc.merge.paper import one_sigma_average
 
     averages: dict[str, dict[str, PoseAverage]] = {}

@@ -230,6 +230,8 @@ class SurveyOptions:
         `outlier_rotation_deg` and `outlier_translation_m` (uniform ranges).
     session_yaw_deg: largest yaw of a session frame in W (sessions start near the bow).
     camera: the camera (None: `default_camera()`).
+    pass_gap_s: time between the end of one pass and the start of the next (s);
+        keyframes inside a pass are 0.5 s apart.
     skip_targets: session index -> target names that dive never films.
     """
 
@@ -251,6 +253,7 @@ class SurveyOptions:
     noise_sigma: float = 2.5
     blur_sigma_px: float = 0.8
     camera: CameraModel | None = None
+    pass_gap_s: float = 0.0
     skip_targets: dict[int, tuple[str, ...]] = field(default_factory=dict)
 
 
@@ -358,6 +361,7 @@ def make_survey(
                     estimated.append(estimate)
                     images.append(image)
                     stamp += 500_000_000
+                stamp += round(options.pass_gap_s * 1e9)
         folders.append(write_slam_folder(root / name, camera, stamps, np.array(estimated), images))
     truth = SurveyTruth(
         world_from_session=truth_sessions,

@@ -178,6 +178,8 @@ def test_raise_paths(survey, tmp_path):
         (MergeOptions(outlier_rule="sigma"), "outlier_rule"),  # type: ignore[arg-type]
         (MergeOptions(min_tags=0), "min_tags"),
         (MergeOptions(mad_threshold=-1.0), "mad_threshold"),
+        (MergeOptions(drift_rate_rotation_deg_per_sqrt_s=0.0), "drift_rate_rotation"),
+        (MergeOptions(drift_rate_translation_m_per_sqrt_s=np.nan), "drift_rate_translation"),
         (MergeOptions(reference="dive9"), "reference 'dive9'"),
     ]
     for options, message in bad_options:
@@ -266,3 +268,77 @@ def test_depth_trajectory_must_overlap_the_keyframes(survey, tmp_path):
     write_tum(folders[0] / "depth" / "trajectory_world_fused.tum", later)
     with pytest.raises(InputError, match="no overlap"):
         run(MergeOptions(plot=False), folders[:1], target_paths, tmp_path / "out")
+
+
+def test_session_anchor_is_the_first_slam_pose(tmp_path, caplog):
+    from postproc.merge.stage import _anchor_ns
+
+    keyframes = Trajectory(np.array([5_000, 9_000], dtype=np.int64), np.stack([np.eye(4)] * 2))
+    assert _anchor_ns(tmp_path, keyframes) == 5_000
+    write_tum(
+        tmp_path / "trajectory.tum",
+        Trajectory(np.array([1_000, 5_000], dtype=np.int64), np.stack([np.eye(4)] * 2)),
+    )
+    assert _anchor_ns(tmp_path, keyframes) == 1_000
+    (tmp_path / "trajectory.tum").write_text("1 2 3\n")
+    assert _anchor_ns(tmp_path, keyframes) == 5_000
+    assert "unreadable" in caplog.text
+
+
+def test_drift_weighting_leans_on_the_first_pass(tmp_path, caplog):
+    """Passes a minute apart in sessions that drift as a random walk from their first pose."""
+    from postproc.merge.synthetic import apply_slam_error
+
+    options = SurveyOptions(
+        sessions=2,
+        passes_per_target=2,
+        keyframes_per_pass=4,
+        pass_gap_s=60.0,
+        distance_m=(0.6, 1.0),
+        camera=default_camera().scaled(0.5),
+        drift_rotation_deg=0.0,
+        drift_translation_m=0.0,
+        jitter_rotation_deg=0.05,
+        jitter_translation_m=0.003,
+        outlier_fraction=0.0,
+    )
+    folders, target_paths, truth = make_survey(tmp_path / "survey", options, seed=8)
+    rng = np.random.default_rng(8)
+    for folder in folders:
+        keyframes = read_tum(folder / "keyframes.tum")
+        seconds = (keyframes.stamps_ns - keyframes.stamps_ns[0]) / 1e9
+        steps = (
+            rng.normal(0.0, 0.01, (len(seconds), 3))
+            * np.sqrt(np.diff(seconds, prepend=0.0))[:, None]
+        )
+        walk = np.cumsum(steps, axis=0)
+        drifted = np.array(
+            [
+                apply_slam_error(pose, make_pose(np.eye(3), w))
+                for pose, w in zip(keyframes.poses, walk, strict=True)
+            ]
+        )
+        (folder / "keyframes.tum").unlink()
+        write_tum(folder / "keyframes.tum", Trajectory(keyframes.stamps_ns, drifted))
+    expected = _relative_truth(truth, "dive1", "dive2")
+    errors, sigmas = {}, {}
+    for weighting in (True, False):
+        out = tmp_path / f"merged_{weighting}"
+        with caplog.at_level("INFO", logger="postproc.merge.stage"):
+            document = json.loads(
+                run(
+                    MergeOptions(drift_weighting=weighting, dof=4, plot=False),
+                    folders,
+                    target_paths,
+                    out,
+                ).read_text()
+            )
+        entry = document["sessions"]["dive2"]
+        errors[weighting] = pose_difference(np.array(entry["T_W_S"]), expected)[1]
+        sigmas[weighting] = entry["sigma_translation_m"]
+        if weighting:
+            assert "from 2 pass pairs" in caplog.text
+    assert errors[True] < 0.5 * errors[False]
+    assert errors[True] < 0.03
+    # The covariance includes the drift of the first passes: the same size as the error.
+    assert 0.3 < errors[True] / sigmas[True] < 3.0
