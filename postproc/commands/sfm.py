@@ -36,25 +36,23 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument(
-        "--max-features", type=int, default=1024, help="SIFT features per image (default 1024)"
+        "--max-features", type=int, help="SIFT features per image (default 512)"
     )
     parser.add_argument(
         "--max-image-size",
         type=int,
-        default=1280,
         metavar="PX",
-        help="longer image side for feature extraction, px (default 1280)",
+        help="longer image side for feature extraction, px (default 640)",
     )
     parser.add_argument(
-        "--sequential", type=int, default=5, help="sequential neighbours per keyframe (default 5)"
+        "--sequential", type=int, help="sequential neighbours per keyframe (default 3)"
     )
     parser.add_argument(
-        "--spatial", type=int, default=6, help="spatial/loop partners per keyframe (default 6)"
+        "--spatial", type=int, help="spatial/loop partners per keyframe (default 4)"
     )
     parser.add_argument(
         "--spatial-radius",
         type=float,
-        default=1.5,
         metavar="METRES",
         help="distance between viewed points of spatial partners, m (default 1.5)",
     )
@@ -87,14 +85,18 @@ def _sfm(args: argparse.Namespace) -> int:
     try:
         options = SfmOptions(
             features=FeatureOptions(
-                max_num_features=args.max_features,
-                max_image_size_px=args.max_image_size,
-                num_threads=args.threads,
+                **_given(
+                    max_num_features=args.max_features,
+                    max_image_size_px=args.max_image_size,
+                    num_threads=args.threads,
+                )
             ),
             pairs=PairOptions(
-                sequential_neighbours=args.sequential,
-                spatial_neighbours=args.spatial,
-                spatial_radius_m=args.spatial_radius,
+                **_given(
+                    sequential_neighbours=args.sequential,
+                    spatial_neighbours=args.spatial,
+                    spatial_radius_m=args.spatial_radius,
+                )
             ),
             refine=RefineOptions(
                 mapper=args.mapper,
@@ -108,3 +110,8 @@ def _sfm(args: argparse.Namespace) -> int:
     model = run(options, args.inputs, args.out, overwrite=args.overwrite)
     print(model)
     return 0
+
+
+def _given(**options: object) -> dict[str, object]:
+    """The options given on the command line (None: keep the stage's default)."""
+    return {name: value for name, value in options.items() if value is not None}

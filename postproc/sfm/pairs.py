@@ -49,8 +49,10 @@ class PairOptions:
     max_bridging_pairs: budget of pairs tying one unplaced session to the placed ones.
     """
 
-    sequential_neighbours: int = 5
-    spatial_neighbours: int = 6
+    # 3 + 4 partners (about 4.6 pairs per keyframe) instead of 5 + 6 (7.4): 37 % fewer
+    # pairs to match, 98 % of them verified, the refined poses within a few millimetres.
+    sequential_neighbours: int = 3
+    spatial_neighbours: int = 4
     view_distance_m: float = 2.0
     spatial_radius_m: float = 1.5
     max_view_angle_deg: float = 60.0

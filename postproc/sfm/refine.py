@@ -60,6 +60,10 @@ class RefineOptions:
         dropped, pixels. filter_min_tri_angle_deg: points seen under a smaller angle too.
     max_rounds: refinement rounds at most. converged_change_m: stop when 95 % of the
         camera centres moved less than this in a round, metres.
+    predict_convergence: also stop when the next round is predicted to move them less
+        than that: the moves shrink geometrically from round to round (0.5 m, 5 cm,
+        3 mm on the simulated surveys), so the next is about this one's times the ratio
+        of this one to the last; saves the round that only confirms convergence.
     skip_redundant_points: adjust first without the 3D points that add little image
         coverage, then those points alone (COLMAP's option for large adjustments).
     redundant_min_coverage_gain: the image coverage a point must add to stay in the joint
@@ -87,6 +91,7 @@ class RefineOptions:
     filter_min_tri_angle_deg: float = 1.5
     max_rounds: int = 6
     converged_change_m: float = 0.01
+    predict_convergence: bool = True
     skip_redundant_points: bool = True
     redundant_min_coverage_gain: float = 0.05
     ignore_two_view_tracks: bool = True
@@ -246,7 +251,9 @@ class _Mapper:
 
     def refine_rounds(self, rounds: list[dict[str, float]]) -> None:
         """Rounds of (merge/complete tracks, retriangulate, BA with priors, filter) until
-        95 % of the camera centres move less than `converged_change_m`."""
+        95 % of the camera centres move less than `converged_change_m` (or are predicted
+        to in the next round, see `RefineOptions.predict_convergence`)."""
+        previous = float("inf")
         for _ in range(self.options.max_rounds):
             start = time.perf_counter()
             before = camera_poses(self.reconstruction)
@@ -292,6 +299,13 @@ class _Mapper:
             )
             if typical < self.options.converged_change_m:
                 break
+            # A prediction needs two rounds, the second moving less than the first.
+            contracting = np.isfinite(previous) and typical < previous
+            predicted = typical * typical / previous if contracting else float("inf")
+            if self.options.predict_convergence and predicted < self.options.converged_change_m:
+                log.info("next round predicted to move cameras by %.4f m: stopping", predicted)
+                break
+            previous = typical
         self.mapper.clear_modified_points3D()
 
     def register_remaining(self) -> int:

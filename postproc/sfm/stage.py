@@ -17,7 +17,9 @@ budget, matches the pairs chosen from the priors, refines (see
 - `stats.json`: pairs by kind, matches, registered keyframes, reprojection error,
   refinement rounds and the time of each step;
 - `database.db`, `pairs.txt` and `images/` (links to the keyframes), which a
-  resumed run reuses and the dense stage reads.
+  resumed run reuses and the dense stage reads;
+- while a run with a `map_fn` works: `features_chunks/` and `matches_chunks/`, one
+  `.npz` per worker task, imported into `database.db` and then removed.
 
 An interrupted run is resumed (features and matches already in the database are
 kept); a finished one (stats.json present) is refused unless `overwrite`.
@@ -39,8 +41,11 @@ import numpy.typing as npt
 from postproc.sfm.database import KeyframeSet, write_database
 from postproc.sfm.features import (
     FeatureOptions,
+    MapFn,
     extract_features,
+    extract_features_mapped,
     match_pairs,
+    match_pairs_mapped,
     match_statistics,
     write_pairs_file,
 )
@@ -58,6 +63,9 @@ FloatArray = npt.NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 _OUR_FILES = ("database.db", "stats.json", "sparse", "images", "pairs.txt", "sessions")
+# Scratch folders of the worker tasks (removed once imported into the database).
+_FEATURES_DIR = "features_chunks"
+_MATCHES_DIR = "matches_chunks"
 
 
 @dataclass(kw_only=True)
@@ -72,6 +80,8 @@ class SfmOptions:
         tight keeps the SLAM drift; one that is loose only fixes the gauge).
     prior_drift_per_m: drift rate assumed when the SLAM's stats.json gives none.
     copy_images: copy keyframes into images/ instead of linking them.
+    chunk_images: keyframes per extraction task when `run` is given a `map_fn`.
+    chunk_pairs: image pairs per matching task when `run` is given a `map_fn`.
     """
 
     features: FeatureOptions = field(default_factory=FeatureOptions)
@@ -81,8 +91,12 @@ class SfmOptions:
     prior_sigma_floor_m: float = 0.1
     prior_drift_per_m: float = 0.05
     copy_images: bool = False
+    chunk_images: int = 32
+    chunk_pairs: int = 400
 
     def __post_init__(self) -> None:
+        if self.chunk_images < 1 or self.chunk_pairs < 1:
+            raise ValueError("chunk_images and chunk_pairs must be at least 1")
         if self.prior_sigma_m is not None and not self.prior_sigma_m > 0:
             raise ValueError(f"prior_sigma_m must be positive, got {self.prior_sigma_m}")
         if not self.prior_sigma_floor_m > 0 or self.prior_drift_per_m < 0:
@@ -279,8 +293,18 @@ def run(
     out_dir: Path | str,
     *,
     overwrite: bool = False,
+    map_fn: MapFn | None = None,
 ) -> Path:
     """Run the SfM stage (see the module docstring); returns the model folder `sparse/0`.
+
+    map_fn: spreads the per-image work over workers: `map_fn(function, items)` must
+    return `[function(item) for item in items]` in order (a process pool's or a Dask
+    client's map); `function` is a top-level function and the items hold paths and
+    options only, so the workers must see `out_dir` and the keyframe images at the same
+    paths. Feature extraction goes out in chunks of `options.chunk_images` keyframes and
+    matching in chunks of `options.chunk_pairs` pairs; each task writes its result file
+    under `out_dir` and the stage imports it into the one database. None: everything
+    runs in this process.
 
     Raises InputError for unreadable or inconsistent inputs, StageError when no model
     can be built, OutputExistsError for a finished run without `overwrite`.
@@ -307,9 +331,21 @@ def run(
     start = time.perf_counter()
     log.info("extracting SIFT features of %d keyframes", len(keyframes))
     longest = max(max(int(c.width), int(c.height)) for c in cameras)
-    extract_features(
-        database_path, image_dir, keyframes.names, options.features, longest_side_px=longest
-    )
+    if map_fn is None:
+        extract_features(
+            database_path, image_dir, keyframes.names, options.features, longest_side_px=longest
+        )
+    else:
+        extract_features_mapped(
+            database_path,
+            image_dir,
+            keyframes.names,
+            options.features,
+            longest_side_px=longest,
+            features_dir=out / _FEATURES_DIR,
+            map_fn=map_fn,
+            chunk_size=options.chunk_images,
+        )
     timings["extract_s"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -321,13 +357,22 @@ def run(
         options.pairs,
     )
     names = keyframes.names
-    pairs_path = write_pairs_file(
-        out / "pairs.txt", [(names[i], names[j]) for i, j in pair_set.pairs.tolist()]
-    )
+    name_pairs = [(names[i], names[j]) for i, j in pair_set.pairs.tolist()]
+    pairs_path = write_pairs_file(out / "pairs.txt", name_pairs)
     timings["pairs_s"] = time.perf_counter() - start
     log.info("matching %d pairs %s", len(pair_set), pair_set.counts())
     start = time.perf_counter()
-    match_pairs(database_path, pairs_path, options.features)
+    if map_fn is None:
+        match_pairs(database_path, pairs_path, options.features)
+    else:
+        match_pairs_mapped(
+            database_path,
+            name_pairs,
+            options.features,
+            matches_dir=out / _MATCHES_DIR,
+            map_fn=map_fn,
+            chunk_size=options.chunk_pairs,
+        )
     timings["match_s"] = time.perf_counter() - start
     matches = match_statistics(database_path)
     if matches["verified_pairs"] == 0:
