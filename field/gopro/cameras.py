@@ -76,7 +76,10 @@ class GoProCamera:
 
 
 GOPRO_CAMERAS: tuple[GoProCamera, ...] = (
-    GoProCamera(name="HERO5 Black", firmware_prefixes=("HD5.02",), hfov_wide_deg=118.2),
+    # HERO5 Black: checked on a real clip (karma.mp4) against the drone's own
+    # velocity log and the image rotation: GoPro X and Y point the other way.
+    GoProCamera(name="HERO5 Black", firmware_prefixes=("HD5.02",), hfov_wide_deg=118.2,
+                imu_axis_order="Zxy"),
     GoProCamera(name="HERO5 Session", firmware_prefixes=("HD5.03",), hfov_wide_deg=118.2),
     GoProCamera(name="HERO6 Black", firmware_prefixes=("HD6.01",), hfov_wide_deg=118.2,
                 imu_axis_order="YxZ"),

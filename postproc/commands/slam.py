@@ -49,6 +49,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default=10.0,
         help="m/s between keyframes above which the estimate counts as diverged (0: no check)",
     )
+    parser.add_argument(
+        "--gyro-check",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="compare the images' rotation with the gyro first: fixes a guessed focal length "
+        "and time shift, and detects stabilised video (auto: only when the calibration is "
+        "a guess)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing result")
     parser.set_defaults(handler=_run)
 
@@ -62,6 +70,7 @@ def _run(args: argparse.Namespace) -> int:
         use_imu=not args.no_imu,
         max_frames=args.max_frames,
         max_speed_m_s=args.max_speed if args.max_speed > 0 else None,
+        gyro_check=args.gyro_check,
     )
     out = run(
         options,

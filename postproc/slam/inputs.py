@@ -59,6 +59,11 @@ class SlamInput(Protocol):
         ...
 
     @property
+    def calibration_is_guess(self) -> bool:
+        """Whether the calibration it carries is a nominal guess (not measured)."""
+        ...
+
+    @property
     def imu(self) -> ImuSamples:
         """All IMU samples (IMU clock)."""
         ...
@@ -95,6 +100,10 @@ class EurocInput:
     @property
     def imu_noise(self) -> ImuNoise | None:
         return self._data.imu_noise
+
+    @property
+    def calibration_is_guess(self) -> bool:
+        return False
 
     @property
     def imu(self) -> ImuSamples:
@@ -165,10 +174,15 @@ class SessionInput:
         imu_yaml = folder / "calib" / "imu.yaml"
         self._calibration = read_camchain(camchain)[0] if camchain.is_file() else None
         self._noise = read_imu_yaml(imu_yaml) if imu_yaml.is_file() else None
+        self._guess = _calibration_is_guess(folder / "session.yaml")
 
     @property
     def name(self) -> str:
         return self.folder.name
+
+    @property
+    def calibration_is_guess(self) -> bool:
+        return self._guess
 
     @property
     def calibration(self) -> CameraCalibration | None:
@@ -227,6 +241,20 @@ class _VideoDecoder:
             self._codec = av.CodecContext.create(names[fmt.lower()], "r")
         for frame in self._codec.decode(av.Packet(data)):
             yield frame.to_ndarray(format="bgr24")
+
+
+def _calibration_is_guess(session_yaml: Path) -> bool:
+    """Whether session.yaml says the camchain is a guess (`calibration.camchain_source`
+    starting with "guess", as the GoPro importer writes it). False when it cannot tell."""
+    import yaml
+
+    try:
+        document = yaml.safe_load(session_yaml.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False
+    calibration = document.get("calibration") if isinstance(document, dict) else None
+    source = calibration.get("camchain_source") if isinstance(calibration, dict) else None
+    return isinstance(source, str) and source.strip().lower().startswith("guess")
 
 
 def _is_euroc(folder: Path) -> bool:

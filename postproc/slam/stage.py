@@ -21,6 +21,13 @@ Time stamps in both TUM files are the image stamps on the camera clock, as
 recorded; the estimator runs on the IMU clock (t_imu = t_cam + Kalibr's
 timeshift_cam_imu).
 
+A calibration guess (a GoPro import without --calib) is first checked
+against the gyro over the first seconds (postproc.slam.gyro_check): when the
+images turn with the IMU, the measured time shift and focal scale replace the
+guess; when they do not (electronically stabilised video), the path comes from
+the images alone, gravity-aligned by the IMU (postproc.slam.stabilised).
+stats.json reports the check ("gyro_check*", "camera_imu_rigid", "mode").
+
 Images are decoded one thread ahead (`prefetch`). A trajectory whose
 keyframes move faster than `SlamOptions.max_speed_m_s` has diverged and is
 refused with a StageError rather than written.
@@ -49,9 +56,16 @@ import numpy as np
 
 from postproc.slam.estimator import EstimatorOptions, SlamEstimator, SlamResult
 from postproc.slam.frontend import FrontendOptions, KltFrontend
+from postproc.slam.gyro_check import (
+    GyroCheck,
+    GyroCheckOptions,
+    check_gyro_against_images,
+    visual_rotation,
+)
 from postproc.slam.initialization import preintegrate
 from postproc.slam.inputs import SlamInput, open_input
 from postproc.slam.loop_closure import Descriptors, orb_descriptors
+from postproc.slam.stabilised import gravity_and_scale
 from postproc.slam.types import FloatArray, FrameTracks, IntArray
 from postproc.slam.visual_only import VisualOnlyEstimator
 from shared.calibration.kalibr import (
@@ -91,6 +105,16 @@ class SlamOptions:
         instead of handing a wrong trajectory to depth fusion and SfM. A diver swims
         below 1 m/s and a scooter reaches about 2.5 m/s; None turns the check off
         (not applied to the visual-only baseline, whose scale is arbitrary).
+    gyro_check: compare the images' frame-to-frame rotation with the gyro over the first
+        `gyro_check_options.probe_s` seconds before the main pass
+        (postproc.slam.gyro_check). "auto": only when the input says its calibration is
+        a guess (GoPro import without --calib); "on"; "off". When the images turn
+        with the gyro, the measured time shift and focal scale replace the guessed
+        ones (written to calib/camchain.yaml); when they do not (a stabilised video),
+        the path comes from the visual-only estimator, put in a gravity-aligned frame,
+        metric when the IMU can weigh it, by postproc.slam.stabilised; stats.json
+        says which ("gyro_check", "mode", "metric_scale"). An explicit `camchain`
+        turns "auto" off.
     """
 
     frontend: FrontendOptions = field(default_factory=FrontendOptions)
@@ -99,6 +123,8 @@ class SlamOptions:
     max_frames: int | None = None
     min_tracks_ok: int = 30
     max_speed_m_s: float | None = 10.0
+    gyro_check: str = "auto"
+    gyro_check_options: GyroCheckOptions = field(default_factory=GyroCheckOptions)
 
 
 def _resolve_calibration(
@@ -153,6 +179,74 @@ def _gyro_rotation(
     return rotation
 
 
+def probe_gyro(
+    source: SlamInput,
+    calibration: CameraCalibration,
+    frontend_options: FrontendOptions,
+    options: GyroCheckOptions,
+) -> GyroCheck:
+    """Track the first `options.probe_s` seconds (no gyro seeding) and compare rotations."""
+    frontend = KltFrontend(frontend_options, calibration.camera)
+    rng = np.random.default_rng(0)
+    threshold_rad = 2.0 / frontend.focal_px
+    starts: list[int] = []
+    ends: list[int] = []
+    rotations: list[FloatArray] = []
+    previous: FrameTracks | None = None
+    first: int | None = None
+    frames = source.frames()
+    try:
+        for frame in frames:
+            first = frame.stamp_ns if first is None else first
+            if (frame.stamp_ns - first) * 1e-9 > options.probe_s:
+                break
+            tracks = frontend.track(frame.stamp_ns, frame.image)
+            if previous is not None:
+                _, ia, ib = np.intersect1d(
+                    previous.track_ids, tracks.track_ids, return_indices=True
+                )
+                rotation, inliers = visual_rotation(
+                    previous.xy_normalised[ia],
+                    tracks.xy_normalised[ib],
+                    rng=rng,
+                    threshold_rad=threshold_rad,
+                )
+                if inliers >= 20:
+                    starts.append(previous.stamp_ns)
+                    ends.append(tracks.stamp_ns)
+                    rotations.append(rotation)
+            previous = tracks
+    finally:
+        close = getattr(frames, "close", None)
+        if close is not None:
+            close()
+    return check_gyro_against_images(
+        starts_ns=np.array(starts, dtype=np.int64),
+        ends_ns=np.array(ends, dtype=np.int64),
+        visual_now_from_prev=np.array(rotations).reshape(-1, 3, 3),
+        imu=source.imu,
+        imu_from_cam_rotation=calibration.imu_from_cam[:3, :3],
+        focal_px=frontend.focal_px,
+        options=options,
+    )
+
+
+def _apply_gyro_check(calibration: CameraCalibration, check: GyroCheck) -> CameraCalibration:
+    """The calibration with the measured time shift and focal length (rigid verdict only)."""
+    camera = calibration.camera
+    fields = {f.name for f in dataclasses.fields(camera)}  # type: ignore[arg-type]
+    if not {"fx", "fy"} <= fields:
+        return calibration
+    corrected = dataclasses.replace(  # type: ignore[type-var]
+        camera,
+        fx=camera.intrinsic_matrix[0, 0] * check.focal_scale,
+        fy=camera.intrinsic_matrix[1, 1] * check.focal_scale,
+    )
+    return dataclasses.replace(
+        calibration, camera=corrected, timeshift_cam_imu_s=check.time_shift_s
+    )
+
+
 def run(
     options: SlamOptions,
     input_path: Path | str,
@@ -180,12 +274,49 @@ def run(
         Path(imu_yaml) if imu_yaml is not None else None,
         need_imu=options.use_imu,
     )
+    if options.gyro_check not in ("auto", "on", "off"):
+        raise ValueError(f"gyro_check {options.gyro_check!r}: expected 'auto', 'on' or 'off'")
+    check: GyroCheck | None = None
+    wanted = options.gyro_check == "on" or (
+        options.gyro_check == "auto" and camchain is None and source.calibration_is_guess
+    )
+    stabilised = False
+    if options.use_imu and wanted:
+        check = probe_gyro(source, calibration, options.frontend, options.gyro_check_options)
+        if check.verdict == "rigid":
+            LOG.info(
+                "%s: the images turn with the gyro (%.0f %% unexplained); measured time shift "
+                "%.3f s and focal x%.3f replace the guessed calibration",
+                source.name,
+                100 * check.unexplained,
+                check.time_shift_s,
+                check.focal_scale,
+            )
+            calibration = _apply_gyro_check(calibration, check)
+        elif check.verdict == "not rigid":
+            stabilised = True
+            LOG.warning(
+                "%s: the images do not turn with the gyro (%.0f %% of its rotation unexplained, "
+                "apparent focal x%.2f, best lag %.3f s): an electronically stabilised video "
+                "(or wrong IMU axes). No rigid camera-IMU model holds; the path comes from "
+                "the images alone, with gravity (and, when it can, the scale) from the IMU",
+                source.name,
+                100 * check.unexplained,
+                check.focal_scale,
+                check.time_shift_s,
+            )
+        else:
+            LOG.info(
+                "%s: too little rotation in the first %.0f s to check the calibration guess",
+                source.name,
+                options.gyro_check_options.probe_s,
+            )
     frontend = KltFrontend(options.frontend, calibration.camera)
     estimator_options = dataclasses.replace(
         options.estimator, timeshift_cam_imu_s=calibration.timeshift_cam_imu_s
     )
     estimator: SlamEstimator | VisualOnlyEstimator
-    if options.use_imu:
+    if options.use_imu and not stabilised:
         assert noise is not None  # _resolve_calibration raised otherwise
         estimator = SlamEstimator(
             estimator_options,
@@ -232,7 +363,28 @@ def run(
             first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
             last_stamp = frame.stamp_ns
         result = estimator.finish()
-        if options.max_speed_m_s is not None and options.use_imu:  # VO scale is arbitrary
+        if stabilised:
+            result = gravity_and_scale(
+                result,
+                source.imu,
+                shift_ns=round(calibration.timeshift_cam_imu_s * 1e9),
+                gravity_m_s2=options.estimator.backend.gravity_m_s2,
+            )
+        if check is not None:
+            result.stats.update(check.as_stats())
+            result.stats["camera_imu_rigid"] = {"rigid": "yes", "not rigid": "no"}.get(
+                check.verdict, "unknown"
+            )
+        if stabilised and not result.stats.get("metric_scale"):
+            LOG.warning(
+                "%s: the IMU cannot fix the scale of the stabilised video's path (scale fit "
+                "%.3g +- %.2g): the trajectory is gravity-aligned but NOT in metres",
+                source.name,
+                result.stats["imu_scale_fit"],
+                result.stats["imu_scale_standard_error"],
+            )
+        metric = options.use_imu and result.stats.get("metric_scale", True)
+        if options.max_speed_m_s is not None and metric:  # VO scale is arbitrary
             _check_speed(result, options.max_speed_m_s, source.name)
         run_time_s = time.monotonic() - started
         cpu_time_s = time.process_time() - started_cpu

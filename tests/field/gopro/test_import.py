@@ -461,7 +461,7 @@ def test_camera_table_and_intrinsics_guess() -> None:
     # The image edge is half the Wide field of view away from the axis.
     edge = air.unproject(np.array([[1919.5, 539.5]]))[0]
     assert np.degrees(np.arctan2(edge[0], edge[2])) == pytest.approx(118.2 / 2, abs=0.1)
-    # HERO5 "ZXY": (Z up, X right, Y forward) -> body (x right, y down, z forward).
+    # "ZXY" (the default order): (Z up, X right, Y forward) -> body (x right, y down, z fwd).
     body = cameras.body_from_file_axes("ZXY") @ np.array([9.81, 0.0, 0.0])
     assert np.allclose(body, [0.0, -9.81, 0.0])
     assert np.allclose(cameras.body_from_file_axes("XzY") @ GRAVITY_FILE_ORDER, [0, -9.81, 0])

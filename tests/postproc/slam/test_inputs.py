@@ -113,3 +113,31 @@ def test_unsupported_video_codec() -> None:
 
     with pytest.raises(InputError, match="unsupported video format"):
         list(_VideoDecoder().decode("vp9", b"\x00"))
+
+
+def _tiny_session(folder: Path, session_yaml: str | None) -> Path:
+    folder.mkdir()
+    with ArchiveWriter(folder / "recording.mcap") as writer:
+        for k in range(3):
+            writer.write("/imu0", Imu(10**9 + k * 5_000_000, "imu0", np.zeros(3), np.ones(3)))
+        writer.write("/cam0/image", CompressedImage(10**9, "cam0", "png", b"not decoded here"))
+    if session_yaml is not None:
+        (folder / "session.yaml").write_text(session_yaml, encoding="utf-8")
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("session_yaml", "expected"),
+    [
+        ("calibration:\n  camchain_source: 'guess: HERO5 Black Wide FOV 118.2 deg'\n", True),
+        ("calibration:\n  camchain_source: given (camchain.yaml)\n", False),
+        ("calibration: [unclosed\n", False),  # unreadable: not a guess we know of
+        ("- a list, not a mapping\n", False),
+        (None, False),
+    ],
+)
+def test_calibration_is_guess_follows_session_yaml(
+    tmp_path: Path, session_yaml: str | None, expected: bool
+) -> None:
+    source = open_input(_tiny_session(tmp_path / "s", session_yaml))
+    assert source.calibration_is_guess is expected

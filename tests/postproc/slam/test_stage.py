@@ -224,3 +224,21 @@ def test_a_diverged_trajectory_is_refused_with_the_speed_named() -> None:
     _check_speed(result, 20.0, "clip")  # type: ignore[arg-type]
     with pytest.raises(StageError, match=r"clip: the trajectory diverged: 16.0 m/s .* 1 and 2"):
         _check_speed(result, 10.0, "clip")  # type: ignore[arg-type]
+
+
+def test_gyro_check_on_a_calibrated_rig(wall_euroc: Path, tmp_path: Path) -> None:
+    """Forced on, the check finds the simulated rig rigid (or too still to say) and
+    reports it; an unknown setting is refused."""
+    out = run(
+        SlamOptions(frontend=FrontendOptions(width_px=0), gyro_check="on", max_frames=90),
+        wall_euroc,
+        tmp_path / "slam",
+    )
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["gyro_check"] in ("rigid", "unknown")
+    assert stats["camera_imu_rigid"] == {"rigid": "yes", "unknown": "unknown"}[stats["gyro_check"]]
+    if stats["gyro_check"] == "rigid":  # the simulator's clocks and focal are exact
+        assert abs(stats["gyro_check_time_shift_s"]) < 0.01
+        assert abs(stats["gyro_check_focal_scale"] - 1.0) < 0.05
+    with pytest.raises(ValueError, match="gyro_check 'yes'"):
+        run(SlamOptions(gyro_check="yes"), wall_euroc, tmp_path / "other")
