@@ -2,6 +2,8 @@
 
     .venv/bin/python bench/bench_dense.py [--duration 30] [--width 640 --height 360]
         [--keyframe-step 0.25] [--max-image-size 960] [--backend auto] [--keep DIR]
+        [--no-view-selection] [--min-baseline-rel 0.3] [--min-rotation-deg 20]
+        [--project-keyframes 5000] [--max-neighbours 4] [--far-neighbours 2]
 
 Simulates session 0 of the survey (`field.sim.survey`: diver route along the starboard
 hull, underwater image model with noise), picks keyframes every `--keyframe-step` metres
@@ -18,6 +20,12 @@ broken down by range band (the range within which a sample is seen by three keyf
 With `--keep DIR`, an SfM folder already in DIR is reused (no rendering) and the truth
 visibility is cached in DIR/seen.npz; `--dense-name` names the dense output folder so
 variants can be compared on the same images.
+
+The stage computes depth maps for reference views only (`ViewSelectionOptions`); the
+bench prints how many of the keyframes were chosen and projects the depth-map time of a
+dive with `--project-keyframes` keyframes (5000: a 45-minute dive) from the measured
+time per reference image and the measured fraction chosen. `--no-view-selection` gives
+every keyframe a depth map (the figures before the selection).
 """
 
 from __future__ import annotations
@@ -40,6 +48,7 @@ from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, 
 from postproc.dense.fusion import FusionOptions
 from postproc.dense.ply import read_ply
 from postproc.dense.stage import DenseOptions, run
+from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
 from shared.calibration.cameras import PinholeRadtan
 
 
@@ -107,6 +116,20 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, help="work folder to keep (default: temporary)")
     parser.add_argument("--dense-name", default="dense", help="dense folder inside the work one")
     parser.add_argument("--no-mesh", action="store_true", help="skip Poisson meshing")
+    parser.add_argument("--no-view-selection", action="store_true",
+                        help="a depth map for every keyframe")  # fmt: skip
+    parser.add_argument("--min-baseline-rel", type=float,
+                        default=ViewSelectionOptions().min_baseline_rel,
+                        help="view selection: baseline over scene depth")  # fmt: skip
+    parser.add_argument("--min-rotation-deg", type=float,
+                        default=ViewSelectionOptions().min_rotation_deg,
+                        help="view selection: turn between optical axes, degrees")  # fmt: skip
+    parser.add_argument("--max-neighbours", type=int, default=NeighbourOptions().max_neighbours,
+                        help="stereo partners per reference at its median depth")  # fmt: skip
+    parser.add_argument("--far-neighbours", type=int, default=NeighbourOptions().far_neighbours,
+                        help="extra stereo partners at its far depth")  # fmt: skip
+    parser.add_argument("--project-keyframes", type=int, default=5000,
+                        help="keyframes of the dive to project the depth-map time to")  # fmt: skip
     parser.add_argument("--min-num-pixels", type=int, default=FusionOptions().min_num_pixels,
                         help="fusion: images agreeing on a point")  # fmt: skip
     parser.add_argument("--max-depth-error", type=float,
@@ -160,6 +183,14 @@ def main() -> None:
     )
     options.fusion = FusionOptions(
         min_num_pixels=args.min_num_pixels, max_depth_error_rel=args.max_depth_error
+    )
+    options.neighbours = NeighbourOptions(
+        max_neighbours=args.max_neighbours, far_neighbours=args.far_neighbours
+    )
+    options.view_selection = ViewSelectionOptions(
+        enabled=not args.no_view_selection,
+        min_baseline_rel=args.min_baseline_rel,
+        min_rotation_deg=args.min_rotation_deg,
     )
     run(options, sfm_dir, out_dir)
     dense_s = time.perf_counter() - start
@@ -250,6 +281,14 @@ def main() -> None:
     if per_image is not None:
         print(f"depth maps: {per_image:.2f} s per image; whole stage {dense_s / n:.2f} s per image "
               f"({dense_s:.1f} s for {n}); evaluation {eval_s:.1f} s")  # fmt: skip
+    chosen = report.get("reference_images", n)
+    print(f"reference views: {chosen} of {n} keyframes ({100 * chosen / n:.0f} %), selection "
+          f"{options.view_selection}")  # fmt: skip
+    if per_image is not None:
+        hours = args.project_keyframes * chosen / n * per_image / 3600.0
+        print(f"projected depth maps for {args.project_keyframes} keyframes: "
+              f"{args.project_keyframes * chosen / n:.0f} references x {per_image:.2f} s = "
+              f"{hours:.2f} h on this machine (one process)")  # fmt: skip
     print(f"load average (1 min): {load_before:.1f} before, {load_after:.1f} after the stage "
           f"({os.cpu_count()} cores)")  # fmt: skip
     five = rows[0][1][1]

@@ -9,12 +9,18 @@
   `stereo/depth_maps/<name>.geometric.bin`, `stereo/normal_maps/...`);
 - `fused.ply` (+ `fused.ply.vis`): COLMAP stereo fusion of the depth maps;
 - `fused_corrected.ply`: the same with underwater colour correction (when asked);
-- `mesh.ply`: screened Poisson mesh, octree depth from the scene, trimmed;
+- `fused_supported.ply`: the fused points seen in `mesh_min_images` images or more;
+- `mesh.ply`: screened Poisson mesh of those, octree depth from the scene, trimmed;
 - `dense.json`: backend, parameters chosen, counts and timings (s, s per image).
 
 Depth maps come from COLMAP PatchMatch when pycolmap was built with CUDA, else from our
-CPU stereo (`postproc.dense.stereo_cpu`). Every step skips what is already on disk (depth
-maps per image), so an interrupted run resumes; `overwrite=True` redoes everything.
+CPU stereo (`postproc.dense.stereo_cpu`). The CPU stereo computes them for reference
+views only (`ViewSelectionOptions`: dense work grows with the surveyed surface, not the
+keyframe count; every keyframe stays a stereo source), one job per reference through a
+map function (`run(..., map_fn=...)`: a process pool or Dask tasks, see
+`postproc.pipeline.parallel`), each job writing its maps atomically into the shared
+workspace. Every step skips what is already on disk (depth maps per image), so an
+interrupted run resumes; `overwrite=True` redoes everything.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import json
 import logging
 import shutil
 import time
-from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -36,19 +42,19 @@ from postproc.dense.colour import ColourOptions
 from postproc.dense.fusion import FusionOptions
 from postproc.dense.meshing import MeshingOptions
 from postproc.dense.stereo_cpu import CpuStereoOptions
-from postproc.dense.views import NeighbourOptions
+from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
 from shared.errors import InputError, OutputExistsError, StageError
 
 log = logging.getLogger(__name__)
 
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
+# The fused points that the mesh is built from (`DenseOptions.mesh_min_images`).
+SUPPORTED_PLY = "fused_supported.ply"
 # Where the SfM stage may have put its model and images, in the order tried.
 MODEL_SUBDIRS = ("sparse", "model", "sparse/0", ".")
 IMAGE_SUBDIRS = ("images", "keyframes")
 # Fewer sparse points than this in an image: its depth range falls back to the option.
 _MIN_POINTS_FOR_RANGE = 10
-# Undistorted images held in memory at once by the CPU backend.
-_IMAGE_CACHE = 24
 
 
 @dataclass(kw_only=True)
@@ -59,7 +65,11 @@ class DenseOptions:
     backend: "auto" (PatchMatch when pycolmap has CUDA, else CPU), "cpu" or "patchmatch";
     image_dir: the images the model names (None: look beside the model);
     fallback_depth_range_m: (near, far) camera depths searched by an image that sees too
-    few sparse points to know its own; colour_correction: also write
+    few sparse points to know its own; mesh_min_images: fused points seen in fewer
+    images than this are left out of the mesh (`fused_supported.ply`: with fusion's
+    min_num_pixels 1, single-image depths complete the cloud, but scattered ones make
+    Poisson grow surface nothing supports); view_selection: which images get a depth map of
+    their own (the CPU backend; every image stays a stereo source); colour_correction: also write
     `fused_corrected.ply` and mesh it; make_mesh: run Poisson meshing.
     """
 
@@ -67,6 +77,7 @@ class DenseOptions:
     backend: str = "auto"
     image_dir: Path | None = None
     fallback_depth_range_m: tuple[float, float] = (0.3, 20.0)
+    view_selection: ViewSelectionOptions = field(default_factory=ViewSelectionOptions)
     neighbours: NeighbourOptions = field(default_factory=NeighbourOptions)
     stereo: CpuStereoOptions = field(default_factory=CpuStereoOptions)
     fusion: FusionOptions = field(default_factory=FusionOptions)
@@ -74,6 +85,7 @@ class DenseOptions:
     colour_correction: bool = False
     colour: ColourOptions = field(default_factory=ColourOptions)
     make_mesh: bool = True
+    mesh_min_images: int = 2
 
 
 # ----------------------------------------------------------------- inputs
@@ -131,13 +143,23 @@ def find_image_dir(sfm_dir: Path, names: list[str], image_dir: Path | None) -> P
 # ----------------------------------------------------------------- depth backends
 
 
+MapFn = Callable[[Callable[[Any], Any], list[Any]], list[Any]]
+
+
 class DepthBackend(Protocol):
-    """Writes geometric depth and normal maps for every image of a workspace."""
+    """Writes geometric depth and normal maps for the reference images of a workspace."""
 
     def run(
-        self, options: DenseOptions, workspace: DenseWorkspace, views: list[PinholeView]
+        self,
+        options: DenseOptions,
+        workspace: DenseWorkspace,
+        views: list[PinholeView],
+        *,
+        references: list[int],
+        map_fn: MapFn,
     ) -> dict[str, Any]:
-        """Compute the missing maps; returns figures for dense.json."""
+        """Compute the missing maps of `views[k]` for k in `references` (indices into
+        `views`), per-image work through `map_fn`; returns figures for dense.json."""
         ...
 
 
@@ -151,29 +173,107 @@ def depth_range_m(view: PinholeView, fallback: tuple[float, float]) -> tuple[flo
     return float(lo * 0.75), float(hi * 1.25)
 
 
+def scene_depth_m(view: PinholeView, fallback: tuple[float, float]) -> float:
+    """A typical depth of what a view sees: its sparse points' median depth (m), else the
+    geometric mean of its depth range."""
+    z = view.point_depths_m()
+    if len(z):
+        return float(np.median(z))
+    near, far = depth_range_m(view, fallback)
+    return float(np.sqrt(near * far))
+
+
 def maps_done(workspace: DenseWorkspace, name: str) -> bool:
     return workspace.depth_map_path(name).is_file() and workspace.normal_map_path(name).is_file()
 
 
+@dataclass(kw_only=True)
+class ViewJob:
+    """One reference image's depth-map work, as a worker receives it: the workspace path,
+    the image names, small matrices and options (the images are read from the shared
+    workspace by the worker, never sent).
+
+    Ks: 3x3 intrinsics (px) and cams_from_world: 4x4 `T_C_W` (m) of the reference first,
+    then of each source; depth_range_m: (near, far) reference depths searched;
+    points_cam_m: (P, 3) sparse points seen by the reference, in its camera frame.
+    """
+
+    workspace_dir: Path
+    name: str
+    source_names: list[str]
+    Ks: list[npt.NDArray[np.float64]]
+    cams_from_world: list[npt.NDArray[np.float64]]
+    depth_range_m: tuple[float, float]
+    points_cam_m: npt.NDArray[np.float64]
+    stereo: CpuStereoOptions
+
+
+def compute_view_maps(job: ViewJob) -> dict[str, Any]:
+    """Write one reference image's geometric depth and normal maps into the workspace
+    (atomically, normals first: a depth map on disk means its normal map is there too);
+    skips an image whose maps exist (a rerun after a worker died, or a resumed stage).
+
+    Returns {"name", "computed", "seconds", "worker" (host:pid), "sources"}.
+    """
+    import os
+    import socket
+
+    import cv2
+
+    from postproc.dense.stereo_cpu import StereoView, depth_map
+
+    workspace = DenseWorkspace(Path(job.workspace_dir))
+    worker = f"{socket.gethostname()}:{os.getpid()}"
+    result: dict[str, Any] = {
+        "name": job.name,
+        "computed": False,
+        "seconds": 0.0,
+        "worker": worker,
+        "sources": len(job.source_names),
+    }
+    if maps_done(workspace, job.name):
+        return result
+    start = time.perf_counter()
+    stereo_views = []
+    for name, K, pose in zip(
+        [job.name, *job.source_names], job.Ks, job.cams_from_world, strict=True
+    ):
+        path = workspace.images_dir / name
+        pixels = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if pixels is None:
+            raise InputError(f"{path}: cannot read the undistorted image")
+        stereo_views.append(StereoView(image=pixels, K=K, cam_from_world=pose))
+    depth, normals = depth_map(
+        stereo_views[0],
+        stereo_views[1:],
+        job.depth_range_m,
+        job.stereo,
+        points_ref_cam=job.points_cam_m,
+    )
+    write_array(workspace.normal_map_path(job.name), normals, overwrite=True)
+    write_array(workspace.depth_map_path(job.name), depth, overwrite=True)
+    result["computed"] = True
+    result["seconds"] = time.perf_counter() - start
+    return result
+
+
 class CpuBackend:
-    """Our SGBM stereo on neighbour pairs (`postproc.dense.stereo_cpu`)."""
+    """Our SGBM stereo on neighbour pairs (`postproc.dense.stereo_cpu`), one job per
+    reference image through the map function."""
 
     def run(
-        self, options: DenseOptions, workspace: DenseWorkspace, views: list[PinholeView]
+        self,
+        options: DenseOptions,
+        workspace: DenseWorkspace,
+        views: list[PinholeView],
+        *,
+        references: list[int],
+        map_fn: MapFn,
     ) -> dict[str, Any]:
-        import cv2
-
-        from postproc.dense.stereo_cpu import StereoView, depth_map
         from postproc.dense.views import select_neighbours
-        from shared.progress import progress
 
         ranges = [depth_range_m(v, options.fallback_depth_range_m) for v in views]
-        typical = [
-            float(np.median(v.point_depths_m()))
-            if len(v.point_depths_m())
-            else np.sqrt(r[0] * r[1])
-            for v, r in zip(views, ranges, strict=True)
-        ]
+        typical = [scene_depth_m(v, options.fallback_depth_range_m) for v in views]
         # Far partners are chosen for the 90th percentile depth: the far end of an oblique
         # wall needs a longer baseline than the median depth asks for.
         far = [
@@ -187,49 +287,37 @@ class CpuBackend:
             typical,
             options.neighbours,
             far_depths_m=far,
+            references=references,
         )
-        cache: OrderedDict[int, npt.NDArray[np.uint8]] = OrderedDict()
-
-        def image(k: int) -> npt.NDArray[np.uint8]:
-            if k in cache:
-                cache.move_to_end(k)
-                return cache[k]
-            path = workspace.images_dir / views[k].name
-            pixels = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            if pixels is None:
-                raise InputError(f"{path}: cannot read the undistorted image")
-            cache[k] = pixels
-            if len(cache) > _IMAGE_CACHE:
-                cache.popitem(last=False)
-            return pixels
-
-        def stereo_view(k: int) -> StereoView:
-            return StereoView(image=image(k), K=views[k].K, cam_from_world=views[k].cam_from_world)
-
-        computed, skipped, seconds = 0, 0, 0.0
-        no_partner = []
-        for k in progress(range(len(views)), total=len(views), desc="depth maps", unit="image"):
-            name = views[k].name
-            if maps_done(workspace, name):
+        jobs = []
+        skipped = 0
+        for k, partners in zip(references, neighbours, strict=True):
+            view = views[k]
+            if maps_done(workspace, view.name):
                 skipped += 1
                 continue
-            start = time.perf_counter()
-            if not neighbours[k]:
-                no_partner.append(name)
-            pose = views[k].cam_from_world
-            points_cam = views[k].points_m @ pose[:3, :3].T + pose[:3, 3]
-            depth, normals = depth_map(
-                stereo_view(k),
-                [stereo_view(j) for j in neighbours[k]],
-                ranges[k],
-                options.stereo,
-                points_ref_cam=points_cam,
+            pose = view.cam_from_world
+            jobs.append(
+                ViewJob(
+                    workspace_dir=workspace.root,
+                    name=view.name,
+                    source_names=[views[j].name for j in partners],
+                    Ks=[view.K, *[views[j].K for j in partners]],
+                    cams_from_world=[pose, *[views[j].cam_from_world for j in partners]],
+                    depth_range_m=ranges[k],
+                    points_cam_m=view.points_m @ pose[:3, :3].T + pose[:3, 3],
+                    stereo=options.stereo,
+                )
             )
-            # Normals first: a depth map on disk means its normal map is there too.
-            write_array(workspace.normal_map_path(name), normals, overwrite=True)
-            write_array(workspace.depth_map_path(name), depth, overwrite=True)
-            seconds += time.perf_counter() - start
-            computed += 1
+        start = time.perf_counter()
+        results = map_fn(compute_view_maps, jobs) if jobs else []
+        wall_s = time.perf_counter() - start
+        computed = [r for r in results if r["computed"]]
+        seconds = float(sum(r["seconds"] for r in computed))
+        workers: dict[str, int] = {}
+        for r in computed:
+            workers[r["worker"]] = workers.get(r["worker"], 0) + 1
+        no_partner = [r["name"] for r in results if r["sources"] == 0]
         if no_partner:
             log.warning(
                 "%d images had no stereo partner (no depth): %s",
@@ -237,12 +325,14 @@ class CpuBackend:
                 ", ".join(no_partner[:5]),
             )
         return {
-            "computed": computed,
-            "skipped": skipped,
+            "computed": len(computed),
+            "skipped": skipped + len(results) - len(computed),
             "seconds": seconds,
-            "seconds_per_image": seconds / computed if computed else None,
+            "seconds_per_image": seconds / len(computed) if computed else None,
+            "wall_s": wall_s,
+            "workers": workers,
             "images_without_partner": len(no_partner),
-            "mean_neighbours": float(np.mean([len(n) for n in neighbours])),
+            "mean_neighbours": float(np.mean([len(n) for n in neighbours])) if neighbours else 0.0,
         }
 
 
@@ -250,8 +340,16 @@ class PatchMatchBackend:
     """COLMAP's PatchMatch stereo with geometric consistency (needs pycolmap with CUDA)."""
 
     def run(
-        self, options: DenseOptions, workspace: DenseWorkspace, views: list[PinholeView]
+        self,
+        options: DenseOptions,
+        workspace: DenseWorkspace,
+        views: list[PinholeView],
+        *,
+        references: list[int],
+        map_fn: MapFn,
     ) -> dict[str, Any]:
+        """Every image of the workspace in one PatchMatch call on this machine's GPU (the
+        reference selection and the map function do not apply)."""
         import pycolmap
 
         if all(maps_done(workspace, v.name) for v in views):
@@ -311,9 +409,21 @@ def undistort(options: DenseOptions, model_dir: Path, image_dir: Path, workspace
         )
 
 
-def run(options: DenseOptions, sfm_dir: Path, out_dir: Path, *, overwrite: bool = False) -> Path:
+def run(
+    options: DenseOptions,
+    sfm_dir: Path,
+    out_dir: Path,
+    *,
+    overwrite: bool = False,
+    map_fn: MapFn | None = None,
+) -> Path:
     """Dense reconstruction of an SfM folder into `out_dir`; returns `mesh.ply` (or
-    `fused.ply` when `make_mesh` is off). See the module docstring for the outputs."""
+    `fused.ply` when `make_mesh` is off). See the module docstring for the outputs.
+
+    map_fn: how the per-image depth maps are spread, `map_fn(fn, items) -> list` (see
+    `postproc.pipeline.parallel`; None: one after another here). The workspace must be
+    on a filesystem every worker sees at the same path.
+    """
     import pycolmap
 
     from postproc.dense.colmap_io import read_pinhole_views
@@ -333,7 +443,7 @@ def run(options: DenseOptions, sfm_dir: Path, out_dir: Path, *, overwrite: bool 
     mesh_ply = out_dir / "mesh.ply"
     report_path = out_dir / "dense.json"
     if overwrite:
-        for path in (fused_ply, corrected_ply, mesh_ply, report_path):
+        for path in (fused_ply, corrected_ply, mesh_ply, report_path, out_dir / SUPPORTED_PLY):
             path.unlink(missing_ok=True)
         fused_ply.with_name(fused_ply.name + ".vis").unlink(missing_ok=True)
         shutil.rmtree(workspace.root, ignore_errors=True)
@@ -360,13 +470,24 @@ def run(options: DenseOptions, sfm_dir: Path, out_dir: Path, *, overwrite: bool 
     timings["undistort_s"] = time.perf_counter() - start
     views = read_pinhole_views(workspace.sparse_dir)
     report["images"] = len(views)
+    references = reference_views(options, views, backend_name)
+    report["reference_images"] = len(references)
 
     start = time.perf_counter()
-    report["depth_maps"] = BACKENDS[backend_name]().run(options, workspace, views)
+    report["depth_maps"] = BACKENDS[backend_name]().run(
+        options, workspace, views, references=references, map_fn=map_fn or _serial_map
+    )
     timings["depth_maps_s"] = time.perf_counter() - start
 
     start = time.perf_counter()
     if not fused_ply.exists():
+        # Fusion reads the images listed in fusion.cfg: the references (the others have
+        # no depth map).
+        write_text_atomic(
+            workspace.stereo_dir / "fusion.cfg",
+            "".join(views[k].name + "\n" for k in references),
+            overwrite=True,
+        )
         fuse(options.fusion, workspace.root, fused_ply)
     timings["fusion_s"] = time.perf_counter() - start
     from postproc.dense.ply import read_ply
@@ -387,6 +508,12 @@ def run(options: DenseOptions, sfm_dir: Path, out_dir: Path, *, overwrite: bool 
     result = fused_ply
     if options.make_mesh:
         start = time.perf_counter()
+        if not mesh_ply.exists() and options.mesh_min_images > 1:
+            supported = out_dir / SUPPORTED_PLY
+            mesh_input = supported_points(
+                mesh_input, fused_ply.with_name(fused_ply.name + ".vis"), supported,
+                min_images=options.mesh_min_images,
+            )  # fmt: skip
         if not mesh_ply.exists():
             report["mesh"] = asdict(mesh(options.meshing, mesh_input, mesh_ply))
         timings["meshing_s"] = time.perf_counter() - start
@@ -394,6 +521,52 @@ def run(options: DenseOptions, sfm_dir: Path, out_dir: Path, *, overwrite: bool 
     report["timings"] = timings
     write_text_atomic(report_path, json.dumps(report, indent=2) + "\n", overwrite=True)
     return result
+
+
+def reference_views(
+    options: DenseOptions, views: list[PinholeView], backend_name: str
+) -> list[int]:
+    """Indices of the views that get a depth map: `options.view_selection` in name order
+    (keyframe names are timestamps, so time order) for the CPU backend; every view for
+    PatchMatch (one call computes them all)."""
+    from postproc.dense.views import select_reference_views
+
+    if backend_name != "cpu":
+        return list(range(len(views)))
+    return select_reference_views(
+        [v.cam_from_world for v in views],
+        [scene_depth_m(v, options.fallback_depth_range_m) for v in views],
+        options.view_selection,
+        order=sorted(range(len(views)), key=lambda k: views[k].name),
+    )
+
+
+def supported_points(fused_ply: Path, visibility: Path, out_ply: Path, *, min_images: int) -> Path:
+    """Write the points of `fused_ply` fused from at least `min_images` images (COLMAP's
+    `.vis` beside the fused cloud, same point order) to `out_ply` (atomic, overwritten)."""
+    from postproc.dense.colmap_io import read_fusion_visibility
+    from postproc.dense.ply import PlyData, read_ply, write_ply
+
+    cloud = read_ply(fused_ply)
+    keep = np.array([len(v) >= min_images for v in read_fusion_visibility(visibility)], bool)
+    if len(keep) != len(cloud.vertices):
+        raise InputError(
+            f"{visibility}: {len(keep)} points, but {fused_ply} has {len(cloud.vertices)}"
+        )
+    if not keep.any():
+        raise StageError(f"{fused_ply}: no point was fused from {min_images} or more images")
+    kept = PlyData(
+        vertices=cloud.vertices[keep],
+        normals=None if cloud.normals is None else cloud.normals[keep],
+        colors=None if cloud.colors is None else cloud.colors[keep],
+    )
+    return write_ply(out_ply, kept, overwrite=True)
+
+
+def _serial_map(fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
+    from shared.progress import progress
+
+    return [fn(item) for item in progress(items, total=len(items), desc="depth maps", unit="image")]
 
 
 def _check_workspace_size(workspace: DenseWorkspace, max_image_size_px: int) -> None:

@@ -244,16 +244,24 @@ def consistent_depth(pair_depths: list[F32], options: CpuStereoOptions | None = 
     stack[stack <= 0] = np.nan
     need = min(options.min_consistent, len(pair_depths))
     with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            median = np.nanmedian(stack, axis=0)
+        median = nan_median_first_axis(stack)
         agree = np.abs(stack - median) <= options.consistency_rel * median
         count = agree.sum(axis=0)
         total = np.where(agree, stack, 0.0).sum(axis=0)
         depth = np.where(count >= need, total / np.maximum(count, 1), 0.0)
     return np.nan_to_num(depth, nan=0.0).astype(np.float32)
+
+
+def nan_median_first_axis(stack: F32) -> F32:
+    """`np.nanmedian(stack, axis=0)` for a few layers without its slow masked path: sort
+    (NaN sorts last), then average the middle one or two of each pixel's finite values
+    (NaN where there are none)."""
+    ordered = np.sort(stack, axis=0)
+    count = np.isfinite(ordered).sum(axis=0)
+    last = len(stack) - 1
+    low = np.take_along_axis(ordered, np.clip((count - 1) // 2, 0, last)[None], axis=0)[0]
+    high = np.take_along_axis(ordered, np.clip(count // 2, 0, last)[None], axis=0)[0]
+    return ((low + high) / 2).astype(stack.dtype)
 
 
 def normals_from_depth(depth_m: F32, K: FloatArray, *, step_px: int = 2) -> F32:

@@ -24,6 +24,7 @@ import multiprocessing
 from collections.abc import Callable
 from typing import Any
 
+from postproc.pipeline.parallel import ParallelSpec
 from postproc.pipeline.project import ClusterSpec
 from shared.errors import InputError
 
@@ -32,6 +33,8 @@ class InlineBackend:
     """Run each task at submission, in this process (progress bars and logs stay visible)."""
 
     description = "in this process"
+    # How a stage spreads its per-image work (`postproc.pipeline.parallel`).
+    parallel = ParallelSpec(kind="serial")
 
     def submit(
         self, key: str, fn: Callable[..., Any], *args: Any
@@ -61,6 +64,7 @@ class ProcessBackend:
             max_workers=workers, mp_context=multiprocessing.get_context("spawn")
         )
         self.description = f"local pool of {workers} processes"
+        self.parallel = ParallelSpec(kind="process", workers=workers)
 
     def submit(self, key: str, fn: Callable[..., Any], *args: Any) -> Any:
         return self.pool.submit(fn, *args)
@@ -83,6 +87,7 @@ class DaskBackend:
         self.client = client
         self.cluster = cluster
         self.description = description or f"dask {client.scheduler.address}"
+        self.parallel = ParallelSpec(kind="dask")
 
     def submit(self, key: str, fn: Callable[..., Any], *args: Any) -> Any:
         import uuid

@@ -297,6 +297,8 @@ def run_project(
         else project.output / "calibration" / "camchain.yaml",
         "imu_yaml": project.imu_yaml,
         "targets": list(project.targets),
+        # Where per-image work goes (not part of the digest: outputs are the same).
+        "parallel": getattr(backend, "parallel", None),
     }
     say(f"{project.name}: {len(tasks)} stage runs for {len(project.sessions)} session(s)")
     bar = progress_bar(total=len(tasks), desc="pipeline", unit="stage")
@@ -352,7 +354,9 @@ def run_project(
                     out=task.out,
                     digest=digest,
                     log_path=project.output / "logs" / f"{task.key.replace(':', '_')}.log",
-                    context={k: context[k] for k in ("camchain", "imu_yaml", "targets")},
+                    context={
+                        k: context[k] for k in ("camchain", "imu_yaml", "targets", "parallel")
+                    },
                     force=force,
                     stamp={
                         "stage": task.stage,

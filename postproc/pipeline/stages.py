@@ -3,8 +3,10 @@
 Every adapter has the signature `(options, inputs, out, *, context) -> Path` where
 `inputs` maps input names to paths (or lists of paths), `out` is a folder that does not
 exist yet (the runner renames it into place when the adapter returns) and `context`
-carries project-wide paths (calibration). They run on whichever worker the scheduler
-picks, so they take only paths and options: data moves through the shared filesystem.
+carries project-wide paths (calibration) and how per-image work spreads over the
+workers (`parallel`: SfM and dense get a map function, `postproc.pipeline.parallel`).
+They run on whichever worker the scheduler picks, so they take only paths and options:
+data moves through the shared filesystem.
 
 `import` runs `wreckmap-field gopro import` as a subprocess: the post-processing side
 never imports the field package.
@@ -12,15 +14,20 @@ never imports the field package.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from shared.errors import StageError
+
+if TYPE_CHECKING:
+    from postproc.pipeline.parallel import MapFn
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +140,10 @@ def run_sfm(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[st
     folders = ([Path(inputs["merge"])] if inputs.get("merge") else []) + [
         Path(p) for p in inputs["slam"]
     ]
-    run(options, folders, out, overwrite=True)
+    if accepts_map_fn(run):
+        run(options, folders, out, overwrite=True, map_fn=stage_map(context))
+    else:
+        run(options, folders, out, overwrite=True)
     return out
 
 
@@ -141,8 +151,20 @@ def run_dense(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[
     """The SfM folder -> the dense folder `out` (fused.ply, mesh.ply, dense.json)."""
     from postproc.dense.stage import run
 
-    run(options, Path(inputs["sfm"]), out, overwrite=True)
+    run(options, Path(inputs["sfm"]), out, overwrite=True, map_fn=stage_map(context))
     return out
+
+
+def stage_map(context: dict[str, Any]) -> MapFn:
+    """The map function for a stage's per-image work on the backend it runs on."""
+    from postproc.pipeline.parallel import make_map
+
+    return make_map(context.get("parallel"))
+
+
+def accepts_map_fn(function: Callable[..., Any]) -> bool:
+    """Whether a stage's run() takes the `map_fn` keyword (stages gain it one by one)."""
+    return "map_fn" in inspect.signature(function).parameters
 
 
 ADAPTERS = {

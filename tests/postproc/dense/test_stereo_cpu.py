@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -12,6 +14,7 @@ from postproc.dense.stereo_cpu import (
     StereoView,
     consistent_depth,
     depth_map,
+    nan_median_first_axis,
     normals_from_depth,
     pair_depth,
     rectifying_rotations,
@@ -149,3 +152,17 @@ def test_normals_of_a_tilted_plane() -> None:
     inner = normals[4:-4, 4:-4].reshape(-1, 3)
     np.testing.assert_allclose(inner, np.broadcast_to(n, inner.shape), atol=1e-3)
     assert np.all(normals[:2] == 0)
+
+
+def test_nan_median_matches_numpy() -> None:
+    rng = np.random.default_rng(5)
+    for layers in (1, 2, 3, 6):
+        stack = rng.uniform(1.0, 9.0, (layers, 40, 50)).astype(np.float32)
+        stack[rng.random(stack.shape) < 0.4] = np.nan
+        stack[:, 0, 0] = np.nan  # no finite value at all
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            expected = np.nanmedian(stack, axis=0)
+        got = nan_median_first_axis(stack)
+        assert got.dtype == np.float32 and np.isnan(got[0, 0])
+        np.testing.assert_allclose(got, expected, rtol=1e-6, equal_nan=True)

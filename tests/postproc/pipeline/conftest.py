@@ -1,13 +1,22 @@
-"""Fixtures of the pipeline tests: a small project on fake inputs, fake stages importable."""
+"""Fixtures of the pipeline tests: a small project on fake inputs, fake stages importable,
+a loopback Dask cluster of real subprocesses."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
+import socket
+import subprocess
 import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
 HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[2]
 
 
 def write_project(root: Path, *, extra: str = "", sessions: int = 2) -> Path:
@@ -49,3 +58,69 @@ def fake_stages(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, st
 @pytest.fixture
 def project_file(tmp_path: Path) -> Path:
     return write_project(tmp_path / "proj")
+
+
+@dataclass
+class LoopbackCluster:
+    """A Dask scheduler and workers on 127.0.0.1, each a real subprocess."""
+
+    address: str
+    workers: list[subprocess.Popen[bytes]]
+
+
+@contextlib.contextmanager
+def loopback_cluster(
+    logs: Path, *, workers: int = 2, env: dict[str, str] | None = None
+) -> Iterator[LoopbackCluster]:
+    """Start `dask scheduler` and `workers` one-thread workers (no nanny: the worker's pid
+    is the process that runs the tasks) with this folder and the repository on
+    PYTHONPATH; stop them all (SIGINT, then kill) on exit."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    address = f"tcp://127.0.0.1:{port}"
+    environment = {
+        **os.environ,
+        **(env or {}),
+        "PYTHONPATH": os.pathsep.join([str(HERE), str(REPO), os.environ.get("PYTHONPATH", "")]),
+        "WRECKMAP_PROGRESS": "0",
+    }
+    logs.mkdir(parents=True, exist_ok=True)
+    procs: list[subprocess.Popen[bytes]] = []
+
+    def start(args: list[str], name: str) -> subprocess.Popen[bytes]:
+        with (logs / f"{name}.log").open("wb") as log_file:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", *args],
+                env=environment,
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+            )
+        procs.append(proc)
+        return proc
+
+    try:
+        start(
+            ["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
+             "--dashboard-address", ":0", "--no-show"],
+            "scheduler",
+        )  # fmt: skip
+        worker_args = ["--nthreads", "1", "--no-nanny", "--host", "127.0.0.1", "--no-dashboard"]
+        started = [
+            start(
+                ["distributed.cli.dask_worker", address, *worker_args, "--name", f"w{k}"],
+                f"worker{k}",
+            )
+            for k in range(workers)
+        ]
+        yield LoopbackCluster(address=address, workers=started)
+    finally:
+        for proc in reversed(procs):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        for proc in procs:
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()

@@ -97,3 +97,36 @@ run_sfm = _adapter("sfm")
 run_dense = _adapter("dense")
 
 ADAPTERS = {stage: f"fake_stages:run_{stage}" for stage in MARKER_FILES}
+
+
+def run_sfm_copy(
+    options: Any, inputs: dict[str, Any], out: Path, *, context: dict[str, Any]
+) -> Path:
+    """An SfM stand-in that copies a ready SfM folder (FAKE_SFM_SOURCE: a COLMAP model in
+    `sparse/` and its `images/`), for running the real dense stage in the pipeline."""
+    import shutil
+
+    shutil.copytree(os.environ["FAKE_SFM_SOURCE"], out)
+    (out / "stats.json").write_text("{}\n")
+    return out
+
+
+# Per-item functions for the map tests (importable by name in spawned processes).
+
+
+def square(x: int) -> int:
+    return x * x
+
+
+def pid_of(_: object) -> int:
+    return os.getpid()
+
+
+def pid_after_meeting(folder: str) -> int:
+    """Register this process in `folder`, then wait (up to 60 s) until two processes have:
+    returns only when the items really ran in two processes at once."""
+    (Path(folder) / str(os.getpid())).touch()
+    deadline = time.monotonic() + 60.0
+    while len(list(Path(folder).iterdir())) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return os.getpid()
