@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import importlib
+import math
 import re
 import types
 import typing
@@ -65,6 +66,9 @@ class SessionSpec:
     paths: the folder (euroc, session) or the chapter files in order (gopro).
     dive: dive folder (`dives.json` + CSVs) or one dive CSV; None: no depth stage.
     truth_session: index of this session in the simulator's truth.json (default: order).
+    dive_time_offset_s: the dive computer's clock minus the camera's, s, when known (the
+        depth stage then skips its search; for a dive too short to sync, which the depth
+        stage refuses).
     """
 
     name: str
@@ -72,6 +76,7 @@ class SessionSpec:
     paths: list[Path]
     dive: Path | None = None
     truth_session: int | None = None
+    dive_time_offset_s: float | None = None
 
 
 @dataclass(kw_only=True)
@@ -203,7 +208,12 @@ def parse_project(document: dict[str, Any], path: Path) -> Project:
         key = f"sessions[{k}]"
         if not isinstance(entry, dict):
             raise InputError(f"{where(key)}: expected a mapping (name, euroc|session|gopro, dive)")
-        _no_unknown(path, key, entry, {"name", *SESSION_SOURCES, "dive", "truth_session"})
+        _no_unknown(
+            path,
+            key,
+            entry,
+            {"name", *SESSION_SOURCES, "dive", "truth_session", "dive_time_offset_s"},
+        )
         sname = entry.get("name")
         if not isinstance(sname, str) or not _NAME.match(sname):
             raise InputError(
@@ -235,9 +245,30 @@ def parse_project(document: dict[str, Any], path: Path) -> Project:
             not isinstance(truth_session, int) or isinstance(truth_session, bool)
         ):
             raise InputError(f"{where(key + '.truth_session')}: expected an integer index")
+        time_offset = entry.get("dive_time_offset_s")
+        if time_offset is not None:
+            if (
+                isinstance(time_offset, bool)
+                or not isinstance(time_offset, (int, float))
+                or not math.isfinite(time_offset)
+            ):
+                raise InputError(
+                    f"{where(key + '.dive_time_offset_s')}: expected a number of seconds, "
+                    f"got {time_offset!r}"
+                )
+            if dive is None:
+                raise InputError(
+                    f"{where(key + '.dive_time_offset_s')}: given without a dive log (dive:)"
+                )
+            time_offset = float(time_offset)
         sessions.append(
             SessionSpec(
-                name=sname, source=source, paths=paths, dive=dive, truth_session=truth_session
+                name=sname,
+                source=source,
+                paths=paths,
+                dive=dive,
+                truth_session=truth_session,
+                dive_time_offset_s=time_offset,
             )
         )
 

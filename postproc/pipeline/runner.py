@@ -72,6 +72,8 @@ class Task:
     deps: keys of the tasks whose outputs are inputs here.
     soft_deps: tasks whose outputs are used when they exist (depth for merge and SfM): a
         failure there does not block this task, and its outcome is part of the digest.
+    option_overrides: fields of the stage's options set for this task only (a session's
+        own dive-clock offset); part of the digest like every option.
     """
 
     key: str
@@ -82,6 +84,7 @@ class Task:
     raw_inputs: tuple[Path, ...] = ()
     deps: tuple[str, ...] = ()
     soft_deps: tuple[str, ...] = ()
+    option_overrides: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(kw_only=True)
@@ -207,6 +210,11 @@ def plan(project: Project) -> tuple[list[Task], list[str]]:
                     inputs={"slam": slam_dir, "dive": session.dive},
                     raw_inputs=(session.dive,),
                     deps=(f"slam:{session.name}",),
+                    option_overrides=(
+                        {"time_offset_s": session.dive_time_offset_s}
+                        if session.dive_time_offset_s is not None
+                        else {}
+                    ),
                 )
             )
         else:
@@ -330,6 +338,8 @@ def run_project(
                     continue
                 try:
                     options = project.options_for(task.stage)
+                    if task.option_overrides:
+                        options = dataclasses.replace(options, **task.option_overrides)
                     upstream = {**digests}
                     for soft in task.soft_deps:
                         if outcomes[soft].status not in ("done", "skipped"):

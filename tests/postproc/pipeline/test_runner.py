@@ -13,6 +13,8 @@ from postproc.pipeline.project import load_project
 from postproc.pipeline.runner import STAMP_NAME, plan, run_project
 from shared.errors import InputError
 
+from .conftest import write_project
+
 ALL = ["slam:s1", "depth:s1", "slam:s2", "depth:s2", "merge", "sfm", "dense"]
 
 
@@ -234,3 +236,34 @@ def test_calibration_recording_runs_first_and_feeds_import_and_slam(
     clear(markers)
     run_project(load_project(project_file), adapters=fake_stages)
     assert calls(markers) == sorted(["calibrate", *ALL])
+
+
+def test_a_session_dive_clock_offset_reaches_only_its_depth_stage(
+    tmp_path: Path, fake_stages: dict[str, str]
+) -> None:
+    root = tmp_path / "proj"
+    path = write_project(root)
+    text = path.read_text().replace(
+        "    dive: data/dive1.csv\n", "    dive: data/dive1.csv\n    dive_time_offset_s: 289.8\n"
+    )
+    path.write_text(text)
+    project = load_project(path)
+    assert [s.dive_time_offset_s for s in project.sessions] == [289.8, None]
+    assert run_project(project, adapters=fake_stages).exit_code() == 0
+    written = {
+        name: json.loads(
+            json.loads((project.output / "sessions" / name / "depth" / "sync.json").read_text())[
+                "options"
+            ]
+        )
+        for name in ("s1", "s2")
+    }
+    assert written["s1"]["time_offset_s"] == 289.8
+    assert written["s2"]["time_offset_s"] is None
+    # Changing the offset reruns that session's depth stage (and what reads it) only.
+    path.write_text(text.replace("289.8", "290.0"))
+    again = run_project(load_project(path), adapters=fake_stages)
+    assert statuses(again)["depth:s1"] == "done" and statuses(again)["depth:s2"] == "skipped"
+    path.write_text(text.replace("289.8", "'soon'"))
+    with pytest.raises(InputError, match=r"dive_time_offset_s: expected a number of seconds"):
+        load_project(path)
