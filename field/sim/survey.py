@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from fractions import Fraction
@@ -568,16 +569,28 @@ def write_session(sim: SurveySimulator, session: int, folder: Path, bar: Any) ->
     truth = sim.sessions[session]
     imu = sim.imu(session)
     folder.mkdir(parents=True, exist_ok=True)
-    rgb_frames: list[npt.NDArray[np.uint8]] = []
     depth_dir = folder / "depth"
+    fps = Fraction(opt.fps).limit_denominator(1001)
+    stream = None
     with EurocWriter(folder / "euroc", camera=sim.calibration, imu_noise=opt.imu) as euroc:
-        for stamp, gray, rgb, depth_mm in _rendered_frames(sim, session, opt.workers, bar):
-            euroc.add_image(stamp, gray)
-            if depth_mm is not None:
-                depth_dir.mkdir(parents=True, exist_ok=True)
-                cv2.imwrite(str(depth_dir / f"{stamp}.png"), depth_mm)
-            if opt.video:
-                rgb_frames.append(rgb)
+
+        def colour_frames() -> Iterator[npt.NDArray[np.uint8]]:
+            # Each frame goes to disk (EuRoC) and to the encoder as it is rendered:
+            # holding a long dive's frames would take 1.5 MB each at 960x540.
+            for stamp, gray, rgb, depth_mm in _rendered_frames(sim, session, opt.workers, bar):
+                euroc.add_image(stamp, gray)
+                if depth_mm is not None:
+                    depth_dir.mkdir(parents=True, exist_ok=True)
+                    cv2.imwrite(str(depth_dir / f"{stamp}.png"), depth_mm)
+                yield rgb
+
+        if opt.video:
+            from field.gopro.writer import encode_h264
+
+            stream = encode_h264(colour_frames(), fps=fps, gop_frames=max(round(fps), 1))
+        else:
+            for _ in colour_frames():
+                pass
         euroc.add_imu(imu.stamps_ns, imu.gyro_radps, imu.accel_mps2)
         poses = truth.trajectory.world_from_body(imu.stamps_ns)
         euroc.set_groundtruth(
@@ -588,11 +601,9 @@ def write_session(sim: SurveySimulator, session: int, folder: Path, bar: Any) ->
         )
     write_tum(folder / "world_from_body.tum", Trajectory(stamps_ns=imu.stamps_ns, poses=poses))
     write_dive(folder / "dive", sim.dive_profile(session))
-    if opt.video:
-        from field.gopro.writer import encode_h264, write_gopro_mp4
+    if stream is not None:
+        from field.gopro.writer import write_gopro_mp4
 
-        fps = Fraction(opt.fps).limit_denominator(1001)
-        stream = encode_h264(rgb_frames, fps=fps, gop_frames=max(round(fps), 1))
         first_true = int(truth.frame_stamps_cam_ns[0]) + sim.timeshift_ns
         created_ns = truth.gopro_clock.apply(first_true)
         write_gopro_mp4(
