@@ -29,6 +29,12 @@ Measurements are undistorted normalised coordinates (the frontend removes the
 lens model), scaled by the focal length so that the noise is in pixels: the
 factors use a distortion-free `Cal3_S2(f, f, 0, 0, 0)`.
 
+Blind keyframes (no projection factor: open water) are counted; the estimator
+keeps them sparse (issue #7). Should ISAM2 still find the system indeterminate,
+`add_keyframe` rebuilds it once from all its factors with weak priors on the
+state GTSAM names (or without the landmark it names) instead of failing; the
+trajectory is kept and `stats.recovered_updates` counts these.
+
 A landmark joins the graph only once its track has been seen in
 `min_observations` keyframes with at least `min_parallax_deg` between the
 extreme rays, triangulates in front of every camera and reprojects within
@@ -43,6 +49,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -95,6 +102,9 @@ class BackendOptions:
         elimination of the window, so it is done in steps, not per keyframe).
     anchor_*: priors on the first kept keyframe's pose, velocity and biases after a
         retirement (they stand for the retired part of the dive).
+    recovery_*: weak priors put on the keyframe states GTSAM names when an ISAM2
+        update finds the system indeterminate (see `_update_or_recover`); weak enough
+        not to pull a well-constrained state, they only fill an unconstrained direction.
     pose_graph_rotation_sigma_rad / pose_graph_translation_sigma_m: uncertainty of the
         relative pose between consecutive keyframes in the global pose graph.
     gravity_m_s2: magnitude of gravity.
@@ -126,6 +136,9 @@ class BackendOptions:
     anchor_velocity_sigma_m_s: float = 0.02
     anchor_accel_bias_sigma_m_s2: float = 0.02
     anchor_gyro_bias_sigma_rad_s: float = 0.001
+    recovery_rotation_sigma_rad: float = 0.1
+    recovery_position_sigma_m: float = 1.0
+    recovery_velocity_sigma_m_s: float = 0.5
     pose_graph_rotation_sigma_rad: float = 0.003
     pose_graph_translation_sigma_m: float = 0.01
     gravity_m_s2: float = GRAVITY_M_S2
@@ -157,6 +170,8 @@ class BackendStats:
     frozen_landmarks: int = 0
     window_rebuilds: int = 0
     pose_graph_loops: int = 0
+    blind_keyframes: int = 0
+    recovered_updates: int = 0
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -183,6 +198,21 @@ def release_freed_memory() -> None:
 def gtsam_reason(error: BaseException) -> str:
     """GTSAM's multi-line exception text in one line (what failed and near which variable)."""
     return " ".join(str(error).split())[:160]
+
+
+def indeterminate_symbol(error: BaseException) -> tuple[str, int] | None:
+    """(character, index) of the variable an IndeterminateLinearSystemException names.
+
+    None when `error` is another failure (GTSAM's text: "... near variable
+    8646911284551352581 (Symbol: x261) ...").
+    """
+    text = str(error)
+    if "Indeterminate linear system" not in text:
+        return None
+    match = re.search(r"\(Symbol: ([a-zA-Z])(\d+)\)", text)
+    if match is None:
+        return None
+    return match.group(1), int(match.group(2))
 
 
 def imu_intervals(
@@ -478,24 +508,114 @@ class VisualInertialBackend:
         self._velocities.append(vel_guess)
         self._biases.append(self._biases[-1])
 
+        projections_before = self.stats.projection_factors
         new_landmarks = self._add_visual_factors(k, track_ids, xy_normalised, graph, values)
-        try:
-            self._isam.update(graph, values)
-            for _ in range(o.extra_iterations):
-                self._isam.update()
-        except RuntimeError as error:
-            # GTSAM reports an ill-posed system (long stretches without landmarks, a
-            # diverged estimate) as RuntimeError; say where it happened.
-            raise StageError(
-                f"visual-inertial backend failed at keyframe {k} ({stamp_ns} ns, "
-                f"{len(self._landmarks)} landmarks): {gtsam_reason(error)}"
-            ) from error
+        if self.stats.projection_factors == projections_before:
+            self.stats.blind_keyframes += 1  # only the IMU (and a still prior) ties it
+        self._update_or_recover(graph, values, f"at keyframe {k} ({stamp_ns} ns")
         self._refresh_recent(k)
         self.stats.keyframes = k + 1
         o_w = self.options.window_keyframes
         if o_w > 0 and self.active_keyframes >= o_w + self.options.window_step_keyframes:
             self._retire(self.num_keyframes - o_w)
         LOG.debug("keyframe %d: %d new landmarks, %d total", k, new_landmarks, len(self._landmarks))
+
+    def _update_or_recover(self, graph: Any, values: Any, where: str) -> None:
+        """ISAM2 update with new factors; one recovery if GTSAM finds the system indeterminate.
+
+        GTSAM raises IndeterminateLinearSystemException (a RuntimeError in Python)
+        naming the variable whose elimination failed; ISAM2 has by then already
+        taken the new factors and values, but its Bayes tree is stale. Recovery
+        rebuilds ISAM2 from all its factors at the linearisation point, drops the
+        projection factors of a named landmark, adds weak priors on the named
+        variable (and the keyframe states it belongs to) and updates once. The
+        trajectory is kept; `stats.recovered_updates` counts these.
+        """
+        o = self.options
+        factors_before = self._isam.getFactorsUnsafe().size()
+        try:
+            self._isam.update(graph, values)
+            for _ in range(o.extra_iterations):
+                self._isam.update()
+            return
+        except RuntimeError as error:
+            symbol = indeterminate_symbol(error)
+            if symbol is None:
+                # GTSAM reports other ill-posed systems (a diverged estimate) as
+                # RuntimeError too; say where it happened.
+                raise StageError(
+                    f"visual-inertial backend failed {where}, {len(self._landmarks)} "
+                    f"landmarks): {gtsam_reason(error)}"
+                ) from error
+            first_error = error
+        LOG.warning("ISAM2 update %s): %s; rebuilding", where, gtsam_reason(first_error))
+        try:
+            self._rebuild_after_failure(graph, values, factors_before, symbol)
+        except RuntimeError as error:
+            raise StageError(
+                f"visual-inertial backend failed {where}, {len(self._landmarks)} landmarks) "
+                f"even after recovery: {gtsam_reason(error)} (first: {gtsam_reason(first_error)})"
+            ) from error
+        self.stats.recovered_updates += 1
+
+    def _rebuild_after_failure(
+        self, graph: Any, values: Any, factors_before: int, symbol: tuple[str, int]
+    ) -> None:
+        gtsam = self.gtsam
+        o = self.options
+        old = self._isam
+        factors = old.getFactorsUnsafe()
+        theta = old.getLinearizationPoint()
+        rebuilt = gtsam.NonlinearFactorGraph()
+        chr_, index = symbol
+        drop_landmark = self._L(index) if chr_ == "l" else None
+        sources = [factors.at(n) for n in range(factors.size())]
+        if factors.size() == factors_before:  # the failed update did not take them
+            sources += [graph.at(n) for n in range(graph.size())]
+        for factor in sources:
+            if factor is None:
+                continue
+            if drop_landmark is not None and drop_landmark in list(factor.keys()):
+                continue
+            rebuilt.add(factor)
+        start = gtsam.Values(theta)
+        new_keys = values.keys()
+        if any(not start.exists(key) for key in new_keys):  # not taken either
+            start.insert(values)
+        if drop_landmark is not None:
+            self._landmarks.discard(index)
+            if start.exists(drop_landmark):
+                start.erase(drop_landmark)
+        else:
+            # Weak priors on the keyframe the named state belongs to (and the next one).
+            for k in (index, index + 1):
+                if not start.exists(self._X(k)):
+                    continue
+                rebuilt.add(
+                    gtsam.PriorFactorPose3(
+                        self._X(k),
+                        start.atPose3(self._X(k)),
+                        gtsam.noiseModel.Diagonal.Sigmas(
+                            np.concatenate(
+                                [
+                                    np.full(3, o.recovery_rotation_sigma_rad),
+                                    np.full(3, o.recovery_position_sigma_m),
+                                ]
+                            )
+                        ),
+                    )
+                )
+                rebuilt.add(
+                    gtsam.PriorFactorVector(
+                        self._V(k),
+                        start.atVector(self._V(k)),
+                        gtsam.noiseModel.Isotropic.Sigma(3, o.recovery_velocity_sigma_m_s),
+                    )
+                )
+        self._isam = self._new_isam()
+        del old, factors, theta
+        release_freed_memory()
+        self._isam.update(rebuilt, start)
 
     def landmark_position(self, track_id: int) -> FloatArray | None:
         """Current position in S (3,) of the landmark of `track_id`, None if it is none."""

@@ -57,6 +57,13 @@ class EstimatorOptions:
         the gyro-predicted rotation removed, below which the camera counts as not
         translating (zero-velocity update).
     timeshift_cam_imu_s: Kalibr's camera-to-IMU time shift (t_imu = t_cam + shift).
+    blind_keyframe_interval_s: while frames carry no tracks (open water, the camera
+        blocked), at most one keyframe per this many seconds (0: no limit). Blind
+        keyframes hold nothing but IMU; at the selector's rate (up to 5 per second,
+        "few tracks") their chain of short, stiff IMU factors left the smoother's
+        system so ill-conditioned (position drift ~12 m against 1e10 bias-walk
+        information) that ISAM2's Cholesky failed after about 20 s blind (issue #7).
+        One long IMU factor per interval carries the same information, well scaled.
     """
 
     keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
@@ -69,6 +76,7 @@ class EstimatorOptions:
     init_min_parallax_deg: float = 2.0
     init_min_condition: float = 1e-3
     init_max_s: float = 5.0
+    blind_keyframe_interval_s: float = 5.0
 
 
 @dataclass
@@ -133,6 +141,9 @@ class SlamEstimator:
         self._rng = np.random.default_rng(0)
         self.init_report: dict[str, float | int | str] = {}
         self._imu_start_ns = int(imu.stamps_ns[0])
+        self._last_kf_blind = False
+        self._last_kf_imu_ns = 0
+        self._blind_skipped = 0  # keyframes the selector asked for while blind, not made
 
     def process(
         self,
@@ -157,6 +168,14 @@ class SlamEstimator:
         self._frame_stamps.append(frame.stamp_ns)
         if not decision.is_keyframe:
             return decision
+        blind = len(frame.track_ids) == 0
+        if blind and self._last_kf_blind and self.backend.num_keyframes:
+            since_s = (imu_ns - self._last_kf_imu_ns) * 1e-9
+            if since_s < self.options.blind_keyframe_interval_s:
+                self._blind_skipped += 1
+                return KeyframeDecision(False, decision.overlap, decision.match_ratio, "blind")
+        self._last_kf_blind = blind
+        self._last_kf_imu_ns = imu_ns
         self._reasons[decision.reason] = self._reasons.get(decision.reason, 0) + 1
         still = bool(self._keyframe_frame_index) and self._still_since_last_keyframe(frame, imu_ns)
         keyframe = _BufferedKeyframe(imu_ns, frame.track_ids, frame.xy_normalised, still)
@@ -344,6 +363,9 @@ class SlamEstimator:
             "retired_keyframes": backend.stats.retired_keyframes,
             "frozen_landmarks": backend.stats.frozen_landmarks,
             "window_rebuilds": backend.stats.window_rebuilds,
+            "blind_keyframes": backend.stats.blind_keyframes,
+            "recovered_updates": backend.stats.recovered_updates,
+            "blind_keyframes_skipped": self._blind_skipped,
             "loop_attempts": self.loops.attempts,
             "keyframe_reasons": dict(self._reasons),
             **self.init_report,

@@ -118,9 +118,11 @@ def test_alignment_recovers_velocity_and_accel_bias() -> None:
     assert result.condition > 1e-3
 
 
-def test_backend_failure_is_a_stage_error() -> None:
+def test_backend_recovers_an_indeterminate_imu_only_chain() -> None:
     # A wrong gravity direction (identity rotation on a tilted body) and no landmarks:
-    # the IMU-only chain diverges until GTSAM gives up; the error must name the keyframe.
+    # the IMU-only chain diverges until GTSAM finds the system indeterminate. Since
+    # issue #7 the backend rebuilds with weak priors and goes on (it used to raise a
+    # StageError; the error paths that remain are tested in test_backend.py).
     seq = simulate_sequence(SyntheticOptions(duration_s=14.0, seed=1))
     backend = VisualInertialBackend(
         BackendOptions(), focal_px=450.0, imu_from_cam=seq.imu_from_cam, imu_noise=seq.imu_noise()
@@ -128,6 +130,10 @@ def test_backend_failure_is_a_stage_error() -> None:
     none = np.zeros(0, np.int64)
     xy = np.zeros((0, 2))
     backend.start(seq.frames[0].stamp_ns, np.eye(3), none, xy)
-    with pytest.raises(StageError, match="backend failed at keyframe"):
-        for frame in seq.frames[31::31]:
-            backend.add_keyframe(frame.stamp_ns, seq.imu, none, xy)
+    frames = seq.frames[31::31]
+    for frame in frames:
+        backend.add_keyframe(frame.stamp_ns, seq.imu, none, xy)
+    assert backend.stats.recovered_updates >= 1
+    assert backend.num_keyframes == len(frames) + 1
+    assert backend.stats.blind_keyframes == len(frames)
+    assert np.all(np.isfinite(backend.session_from_body(backend.num_keyframes - 1)))
