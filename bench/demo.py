@@ -1,7 +1,11 @@
 """`make demo`: a simulated survey taken in through the real paths and processed end to end.
 
     .venv/bin/python bench/demo.py --out demo-output            # what `make demo` runs
-    .venv/bin/python bench/demo.py --out demo-output/short --duration 20 --width 320 --height 180
+    .venv/bin/python bench/demo.py --out demo-output/quick --dense-image-px 160
+
+Dives shorter than about 90 s hold too few 10 s dive-computer samples for the depth
+sync to be sure of the clock offset (it then refuses the dive), and images smaller than
+640x360 leave the AprilGrids undetected (merge cannot place the second dive).
 
 Steps, each a real command line run as a subprocess:
 
@@ -243,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("demo-output"), help="demo folder")
     parser.add_argument("--sessions", type=int, default=2, help="simulated dives")
-    parser.add_argument("--duration", type=float, default=60.0, help="filmed seconds a dive")
+    parser.add_argument("--duration", type=float, default=90.0, help="filmed seconds a dive")
     parser.add_argument("--width", type=int, default=640, help="image width, px")
     parser.add_argument("--height", type=int, default=360, help="image height, px")
     parser.add_argument("--fps", type=float, default=10.0, help="frame rate, Hz")

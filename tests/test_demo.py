@@ -25,7 +25,7 @@ def test_reduced_demo(tmp_path: Path) -> None:
     env = {**os.environ, "WRECKMAP_PROGRESS": "0", "PYTHONPATH": str(REPO)}
     command = [
         sys.executable, str(REPO / "bench" / "demo.py"), "--out", str(out),
-        "--duration", "40", "--width", "640", "--height", "360", "--fps", "10",
+        "--duration", "90", "--width", "640", "--height", "360", "--fps", "10",
         "--dense-image-px", "160", "--depth-min-range-m", "0.2",
     ]  # fmt: skip
     # Its own process group, so that a timeout stops the simulator and the pipeline too.
