@@ -7,10 +7,15 @@ can silence it with WRECKMAP_PROGRESS=0.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
 T = TypeVar("T")
+
+MapFn = Callable[[Callable[[Any], Any], list[Any]], list[Any]]
+"""A map over per-image work: `map_fn(fn, items) -> [fn(item) for item in items]`, in
+order, wherever it runs (`serial_map` here, a process pool or Dask workers from
+`postproc.pipeline.parallel`)."""
 
 
 def _enabled() -> bool:
@@ -30,6 +35,15 @@ def progress(
     yield from tqdm(
         iterable, total=total, desc=desc, unit=unit, disable=not _enabled(), mininterval=0.5
     )
+
+
+def serial_map(
+    fn: Callable[[Any], Any], items: list[Any], *, desc: str | None = None, unit: str = "item"
+) -> list[Any]:
+    """`[fn(item) for item in items]` in this process, showing progress (`desc` defaults
+    to the function's name)."""
+    name = desc if desc is not None else getattr(fn, "__name__", "task")
+    return [fn(item) for item in progress(items, total=len(items), desc=name, unit=unit)]
 
 
 def progress_bar(*, total: float | None, desc: str = "", unit: str = "it", **kwargs: Any) -> Any:

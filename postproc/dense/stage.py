@@ -25,11 +25,11 @@ interrupted run resumes; `overwrite=True` redoes everything.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import shutil
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -44,6 +44,7 @@ from postproc.dense.meshing import MeshingOptions
 from postproc.dense.stereo_cpu import CpuStereoOptions
 from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
 from shared.errors import InputError, OutputExistsError, StageError
+from shared.progress import MapFn, serial_map
 
 log = logging.getLogger(__name__)
 
@@ -141,9 +142,6 @@ def find_image_dir(sfm_dir: Path, names: list[str], image_dir: Path | None) -> P
 
 
 # ----------------------------------------------------------------- depth backends
-
-
-MapFn = Callable[[Callable[[Any], Any], list[Any]], list[Any]]
 
 
 class DepthBackend(Protocol):
@@ -473,9 +471,11 @@ def run(
     references = reference_views(options, views, backend_name)
     report["reference_images"] = len(references)
 
+    if map_fn is None:
+        map_fn = functools.partial(serial_map, desc="depth maps", unit="image")
     start = time.perf_counter()
     report["depth_maps"] = BACKENDS[backend_name]().run(
-        options, workspace, views, references=references, map_fn=map_fn or _serial_map
+        options, workspace, views, references=references, map_fn=map_fn
     )
     timings["depth_maps_s"] = time.perf_counter() - start
 
@@ -561,12 +561,6 @@ def supported_points(fused_ply: Path, visibility: Path, out_ply: Path, *, min_im
         colors=None if cloud.colors is None else cloud.colors[keep],
     )
     return write_ply(out_ply, kept, overwrite=True)
-
-
-def _serial_map(fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
-    from shared.progress import progress
-
-    return [fn(item) for item in progress(items, total=len(items), desc="depth maps", unit="image")]
 
 
 def _check_workspace_size(workspace: DenseWorkspace, max_image_size_px: int) -> None:

@@ -30,10 +30,10 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from shared.errors import InputError
+from shared.progress import MapFn, serial_map
 
 log = logging.getLogger(__name__)
 
-MapFn = Callable[[Callable[[Any], Any], list[Any]], list[Any]]
 KINDS = ("serial", "process", "dask")
 
 
@@ -47,14 +47,6 @@ class ParallelSpec:
 
     kind: Literal["serial", "process", "dask"] = "serial"
     workers: int = 1
-
-
-def serial_map(fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
-    """`[fn(item) for item in items]`, showing progress."""
-    from shared.progress import progress
-
-    name = getattr(fn, "__name__", "task")
-    return [fn(item) for item in progress(items, total=len(items), desc=name, unit="item")]
 
 
 def process_map(workers: int) -> MapFn:

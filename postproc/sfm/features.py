@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 import shutil
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -27,11 +27,11 @@ import numpy as np
 
 from shared.errors import StageError
 from shared.fsutil import atomic_path, write_text_atomic
+from shared.progress import MapFn
 
 #: A map over workers: `map_fn(function, items)` returns `[function(item) for item in
 #: items]` in order, where `function` is a picklable top-level function and the items
 #: hold paths and options only (a process pool's or a Dask client's map, for example).
-MapFn = Callable[[Callable[[Any], Any], list[Any]], list[Any]]
 
 
 @dataclass(kw_only=True)

@@ -41,7 +41,6 @@ import numpy.typing as npt
 from postproc.sfm.database import KeyframeSet, write_database
 from postproc.sfm.features import (
     FeatureOptions,
-    MapFn,
     extract_features,
     extract_features_mapped,
     match_pairs,
@@ -56,6 +55,7 @@ from shared.calibration.cameras import CameraModel
 from shared.errors import InputError, OutputExistsError, StageError
 from shared.fsutil import atomic_path, write_text_atomic
 from shared.geometry import invert_pose
+from shared.progress import MapFn
 from shared.trajectory import Trajectory
 
 FloatArray = npt.NDArray[np.float64]
