@@ -23,11 +23,10 @@ The drone's own telemetry in the file (LNED, VFRH) says it flies forward,
 accelerating from 1.2 to 8.3 m/s in the first 5 s, ~77 m, level within 1 m.
 The imported accelerometer reads that acceleration backwards, and the
 essential-matrix rotations and the gravity drift agree with the gyro only
-with B's x and z reversed: the importer's HERO5 axis order ("ZXY") looks wrong
-in x and z (reported; "Zxy" fits). As imported, the estimate diverges and the
-stage refuses it (StageError); with the axes reversed it speeds up to ~5 m/s
-in 5 s and holds it, 52 m, 0.7 degrees from gravity (the far scene leaves the
-scale ~35 % short of the telemetry's).
+with B's x and z reversed: the importer's HERO5 axis order was "ZXY" and is
+now "Zxy" (with "ZXY" the estimate diverged and the stage refused it). With
+"Zxy" it speeds up to ~5 m/s in 5 s and holds it, 52 m, 0.7 degrees from
+gravity (the far scene leaves the scale ~35 % short of the telemetry's).
 """
 
 from __future__ import annotations
@@ -45,8 +44,7 @@ import yaml
 from postproc.slam.frontend import FrontendOptions
 from postproc.slam.gyro_check import GyroCheckOptions
 from postproc.slam.inputs import open_input
-from postproc.slam.stage import SlamOptions, keyframe_speeds_m_s, probe_gyro, run
-from shared.errors import StageError
+from postproc.slam.stage import keyframe_speeds_m_s, probe_gyro
 from shared.formats.tum import read_tum
 from shared.trajectory import Trajectory
 
@@ -137,14 +135,9 @@ def test_karma_drone_clip(shared_data: Path, tmp_path: Path) -> None:
     assert -0.07 < check.time_shift_s < -0.02
     assert check.unexplained < 0.2
     document = yaml.safe_load((session / "session.yaml").read_text(encoding="utf-8"))
-    if document["devices"]["imu0"]["file_axis_order"] == "ZXY":
-        # The importer's HERO5 axes as of this writing: x and z of B reversed (the
-        # accelerometer then reads the drone's forward acceleration backwards, see the
-        # module docstring). The estimate diverges and the stage says so.
-        with pytest.raises(StageError, match=r"karma.*diverged: [0-9.]+ m/s between keyframes"):
-            run(SlamOptions(), session, tmp_path / "slam")
-        assert not (tmp_path / "slam").exists()  # nothing half-written left behind
-        return
+    # HERO5 Black axes "Zxy" (field/gopro/cameras.py); with the old "ZXY" the
+    # accelerometer read the drone's forward acceleration backwards and SLAM diverged.
+    assert document["devices"]["imu0"]["file_axis_order"] == "Zxy"
     out = tmp_path / "slam"
     done = _cli("postproc.cli", "slam", str(session), "--out", str(out))
     assert done.returncode == 0, done.stderr
