@@ -227,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
             "k": k,
             "at_45_min_s": at_45,
         }
-        print(f"{stage:<8} {long:>9.1f} {long / video_h:>12.0f} {k:>6.2f} {at_45:>14.0f}")
+        k_text = f"{k:.2f}" if math.isfinite(k) else "(1)"  # not measured: taken as linear
+        print(f"{stage:<8} {long:>9.1f} {long / video_h:>12.0f} {k_text:>6} {at_45:>14.0f}")
     print(f"{'total':<8} {total:>9.1f} {total / video_h:>12.0f} {'':>6} {total_45:>14.0f}")
     print(f"45-minute dive, slam to mesh: {total_45 / 3600:.2f} h (goal < 3 h)")
     print(f"load average now: {os.getloadavg()[0]:.1f} (2-core machine: timings rise with it)")
