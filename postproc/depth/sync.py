@@ -501,11 +501,6 @@ def fit_depth_sync(
     )
 
 
-def robust_cost_m(sync: DepthSync) -> float:
-    """A comparable misfit of a fit (robust scale, metres) for choosing between candidates."""
-    return sync.robust_scale_m
-
-
 def depth_variation_m(
     traj_t_s: npt.ArrayLike,
     traj_z_m: npt.ArrayLike,
