@@ -14,12 +14,10 @@ never imports the field package.
 
 from __future__ import annotations
 
-import inspect
 import logging
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -140,10 +138,7 @@ def run_sfm(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[st
     folders = ([Path(inputs["merge"])] if inputs.get("merge") else []) + [
         Path(p) for p in inputs["slam"]
     ]
-    if accepts_map_fn(run):
-        run(options, folders, out, overwrite=True, map_fn=stage_map(context))
-    else:
-        run(options, folders, out, overwrite=True)
+    run(options, folders, out, overwrite=True, map_fn=stage_map(context))
     return out
 
 
@@ -160,11 +155,6 @@ def stage_map(context: dict[str, Any]) -> MapFn:
     from postproc.pipeline.parallel import make_map
 
     return make_map(context.get("parallel"))
-
-
-def accepts_map_fn(function: Callable[..., Any]) -> bool:
-    """Whether a stage's run() takes the `map_fn` keyword (stages gain it one by one)."""
-    return "map_fn" in inspect.signature(function).parameters
 
 
 ADAPTERS = {

@@ -99,10 +99,6 @@ def test_adapters_pass_the_map_function(
         calls["sfm"] = {"overwrite": overwrite, "map_fn": map_fn}
         return out
 
-    def sfm_without(options: Any, input_dirs: list[Path], out: Path, **kwargs: Any) -> Path:
-        calls["sfm_old"] = kwargs
-        return out
-
     monkeypatch.setattr(postproc.dense.stage, "run", dense_run)
     context = {"parallel": ParallelSpec(kind="process", workers=3)}
     stages.run_dense(None, {"sfm": tmp_path}, tmp_path / "d", context=context)
@@ -111,7 +107,3 @@ def test_adapters_pass_the_map_function(
     monkeypatch.setattr(postproc.sfm.stage, "run", sfm_with_map)
     stages.run_sfm(None, {"slam": [tmp_path]}, tmp_path / "s", context={"parallel": None})
     assert calls["sfm"]["map_fn"] is serial_map
-    # A run() without the keyword is called without it.
-    monkeypatch.setattr(postproc.sfm.stage, "run", sfm_without)
-    stages.run_sfm(None, {"slam": [tmp_path]}, tmp_path / "s", context={})
-    assert calls["sfm_old"] == {"overwrite": True}
