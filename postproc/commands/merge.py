@@ -93,6 +93,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "session start (drift weighting, the default, places the session frame best; equal "
         "weights overlay the sessions best at the targets)",
     )
+    parser.add_argument(
+        "--tilt-sigma-deg",
+        type=float,
+        default=None,
+        help="roll/pitch error (1-sigma, deg) of each session's gravity alignment: fit 6 DoF "
+        "with that prior on the relative tilt instead of 4 DoF (default: 4 DoF when "
+        "depth-fused)",
+    )
     parser.add_argument("--camera", default="cam0", help="camchain entry of the keyframes")
     parser.add_argument("--no-plot", action="store_true", help="skip the PNG views")
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
@@ -111,6 +119,7 @@ def _merge(args: argparse.Namespace) -> int:
         rotation_mean=args.rotation_mean,
         outlier_rule=args.outlier_rule,
         drift_weighting=not args.no_drift_weighting,
+        tilt_sigma_deg=args.tilt_sigma_deg,
         camera=args.camera,
         plot=not args.no_plot,
     )

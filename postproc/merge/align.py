@@ -14,6 +14,11 @@ A target `m` seen in sessions A and B gives one candidate
   propagated covariances. The target's tilt, which in a 6-DoF candidate turns
   into a translation error proportional to the target's distance from the
   session origin, is not used.
+* 6 DoF with a gravity prior (`align_6dof(..., tilt_prior_sigma_rad=σ)`): every
+  session frame is gravity-aligned up to its SLAM's roll/pitch error (σ per axis
+  and session), so the relative roll and pitch of `T_A_B` get a zero-mean prior
+  of σ√2 per axis on top of the candidates' information. Strong target evidence
+  corrects the tilt; weak evidence leaves it near zero, the 4-DoF answer.
 
 `place_sessions` chains these over many sessions: starting at the reference
 session, it repeatedly places the unplaced session sharing the most targets
@@ -29,8 +34,8 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from postproc.merge.averaging import fuse_pose_estimates
-from shared.geometry import invert_pose, make_pose, rotation_angle_rad, skew, so3_log
+from postproc.merge.averaging import fuse_pose_estimates, pose_residuals
+from shared.geometry import invert_pose, make_pose, rotation_angle_rad, skew, so3_exp, so3_log
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -116,13 +121,55 @@ def _check_pairs(pairs: Sequence[TargetPair], what: str) -> None:
         raise ValueError(f"{what}: no shared target")
 
 
-def align_6dof(pairs: Sequence[TargetPair]) -> Alignment:
-    """Full SE(3) `T_A_B`: the information-weighted mean of the per-target candidates."""
+def tilt_vector_rad(rotation: FloatArray) -> FloatArray:
+    """(2,) roll/pitch part `w` of `R = Exp([w, 0]) Rz(yaw)` (rad, parent frame).
+
+    The rotation vector, perpendicular to z, that tilts z onto `R @ e_z`; zero for a
+    rotation about z. A small rotation `Exp(δθ)` applied on the left adds
+    `δθ[:2]` to it to first order.
+    """
+    z = np.asarray(rotation, dtype=np.float64)[:3, 2]
+    axis = np.array([-z[1], z[0]])
+    sine = float(np.linalg.norm(axis))
+    angle = float(np.arctan2(sine, z[2]))
+    if sine < 1e-15:
+        return np.zeros(2) if z[2] > 0 else np.array([np.pi, 0.0])
+    return np.asarray(axis * (angle / sine), dtype=np.float64)
+
+
+def align_6dof(
+    pairs: Sequence[TargetPair],
+    *,
+    tilt_prior_sigma_rad: float | None = None,
+    max_iterations: int = 30,
+) -> Alignment:
+    """Full SE(3) `T_A_B`: the information-weighted mean of the per-target candidates.
+
+    tilt_prior_sigma_rad: None for no prior; else the roll/pitch error (rad, 1 sigma
+    per axis) of each session's gravity alignment: the relative tilt of `T_A_B`
+    (`tilt_vector_rad`) gets a zero-mean Gaussian prior of sigma·√2 per axis, and the
+    fit is the maximum a posteriori estimate by Gauss-Newton on SE(3). The
+    covariance is that of the posterior (roll and pitch never looser than the prior).
+    Raises ValueError for no pair or a sigma that is not positive and finite.
+    """
     _check_pairs(pairs, "align_6dof")
     candidates = [pair.candidate() for pair in pairs]
     pose, covariance = fuse_pose_estimates(
         np.array([c[0] for c in candidates]), np.array([c[1] for c in candidates])
     )
+    if tilt_prior_sigma_rad is not None:
+        if not (tilt_prior_sigma_rad > 0 and np.isfinite(tilt_prior_sigma_rad)):
+            raise ValueError(
+                f"align_6dof: tilt_prior_sigma_rad must be positive, got {tilt_prior_sigma_rad}"
+            )
+        pose, covariance = _with_tilt_prior(
+            np.array([c[0] for c in candidates]),
+            np.linalg.inv(covariance),
+            [np.linalg.inv(c[1]) for c in candidates],
+            pose,
+            2.0 * tilt_prior_sigma_rad**2,
+            max_iterations,
+        )
     return Alignment(
         a_from_b=pose,
         covariance=covariance,
@@ -130,6 +177,31 @@ def align_6dof(pairs: Sequence[TargetPair]) -> Alignment:
         target_names=tuple(p.name for p in pairs),
         residuals_rad_m=_residuals(pairs, pose),
     )
+
+
+def _with_tilt_prior(
+    candidates: FloatArray,
+    total_information: FloatArray,
+    informations: Sequence[FloatArray],
+    start: FloatArray,
+    prior_variance_rad2: float,
+    max_iterations: int,
+) -> tuple[FloatArray, FloatArray]:
+    """MAP of the candidates' Mahalanobis cost plus `|tilt|² / prior_variance`."""
+    prior = np.zeros((6, 6))
+    prior[0, 0] = prior[1, 1] = 1.0 / prior_variance_rad2
+    hessian = total_information + prior
+    pose = start.copy()
+    for _ in range(max_iterations):
+        r = pose_residuals(candidates, pose)
+        gradient = sum((info @ ri for info, ri in zip(informations, r, strict=True)), np.zeros(6))
+        gradient[:2] -= tilt_vector_rad(pose[:3, :3]) / prior_variance_rad2
+        step = np.linalg.solve(hessian, gradient)
+        pose = make_pose(so3_exp(step[:3]) @ pose[:3, :3], pose[:3, 3] + step[3:])
+        if np.linalg.norm(step) < 1e-13:
+            break
+    covariance = np.linalg.inv(hessian)
+    return pose, 0.5 * (covariance + covariance.T)
 
 
 def yaw_rad(rotation: FloatArray) -> float:
@@ -213,12 +285,17 @@ def align_4dof(pairs: Sequence[TargetPair], *, max_iterations: int = 30) -> Alig
     )
 
 
-def align_sessions(pairs: Sequence[TargetPair], *, dof: Dof) -> Alignment:
-    """`align_4dof` or `align_6dof` by `dof`; raises ValueError for another value."""
+def align_sessions(
+    pairs: Sequence[TargetPair], *, dof: Dof, tilt_prior_sigma_rad: float | None = None
+) -> Alignment:
+    """`align_4dof` or `align_6dof` (with the tilt prior, if any) by `dof`.
+
+    Raises ValueError for another dof.
+    """
     if dof == 4:
         return align_4dof(pairs)
     if dof == 6:
-        return align_6dof(pairs)
+        return align_6dof(pairs, tilt_prior_sigma_rad=tilt_prior_sigma_rad)
     raise ValueError(f"align_sessions: dof must be 4 or 6, got {dof!r}")
 
 
@@ -252,6 +329,7 @@ def place_sessions(
     *,
     dof: Dof,
     reference_covariance: FloatArray | None = None,
+    tilt_prior_sigma_rad: float | None = None,
 ) -> dict[str, Placement]:
     """Put sessions into the frame of `reference` through the targets they share.
 
@@ -259,6 +337,8 @@ def place_sessions(
     Returns the placed sessions only (those connected to the reference through
     shared targets). A target's world pose, used to place the next session, is
     the information-weighted fusion over the sessions already placed.
+    tilt_prior_sigma_rad: with dof 6, each session's gravity-alignment error (rad,
+    1 sigma per axis) for the prior on its roll and pitch in W (`align_6dof`).
     Raises ValueError when `reference` is not among the sessions.
     """
     if reference not in targets:
@@ -310,7 +390,7 @@ def place_sessions(
             pairs.append(
                 TargetPair(name, world_pose, world_cov, estimate.pose, estimate.covariance)
             )
-        alignment = align_sessions(pairs, dof=dof)
+        alignment = align_sessions(pairs, dof=dof, tilt_prior_sigma_rad=tilt_prior_sigma_rad)
         placed[session] = Placement(
             world_from_session=alignment.a_from_b,
             covariance=alignment.covariance,

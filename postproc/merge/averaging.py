@@ -451,6 +451,27 @@ def estimate_drift_model(
     return DriftModel(drift_rate=rate, noise=noise, pass_pairs=pairs)
 
 
+def local_frame_variance(model: DriftModel, target_times_s: npt.ArrayLike) -> FloatArray:
+    """Per target, the variance (M, 6) of its local map frame about the session's mean frame.
+
+    Where a drifting session filmed target m (at `target_times_s[m]`, s since the
+    anchor) its map sits in a frame moved by the random walk `d(τ_m)`; one rigid
+    transform can overlay the session's maps only up to how those frames differ.
+    About their mean over the M targets, target m's frame is off by
+    `d(τ_m) - mean_j d(τ_j)`, of variance per axis
+    `q (τ_m - 2/M Σ_j min(τ_m, τ_j) + 1/M² Σ_ij min(τ_i, τ_j))` (`model.drift_rate`
+    q). Adding it to each target's covariance weighs targets for the overlay, not for
+    the anchored frame. Negative times count as 0. Raises ValueError for no target.
+    """
+    tau = np.maximum(np.asarray(target_times_s, dtype=np.float64).reshape(-1), 0.0)
+    if tau.shape[0] == 0:
+        raise ValueError("local_frame_variance: no target time")
+    shared = np.minimum.outer(tau, tau)
+    m = tau.shape[0]
+    scale = tau - 2.0 / m * shared.sum(axis=1) + shared.sum() / m**2
+    return np.asarray(np.outer(np.maximum(scale, 0.0), model.drift_rate), dtype=np.float64)
+
+
 def drift_weighted_mean(
     poses: npt.ArrayLike,
     times_s: npt.ArrayLike,

@@ -16,7 +16,9 @@ weighs the inliers by generalised least squares and gives a covariance that
 includes the drift (`averaging.estimate_drift_model`, `drift_weighted_mean`).
 Then sessions are placed in the reference session's frame
 (`align.place_sessions`): 4 DoF (yaw and translation) when the sessions are
-depth-fused (gravity-aligned with absolute z), otherwise 6 DoF.
+depth-fused (gravity-aligned with absolute z), otherwise 6 DoF; with
+`tilt_sigma_deg` (the SLAM's roll/pitch uncertainty) a 6-DoF fit whose
+relative roll and pitch get that gravity prior.
 `method="paper"` runs the paper's recipe instead (`paper.py`): per-tag poses,
 one-sigma rejection, Euler averaging, sessions placed only through targets
 shared with the reference.
@@ -30,6 +32,7 @@ keyframe poses are moved into that world frame first:
 Outputs in `out_dir`:
 
 * `transforms.json`: {"reference", "method", "dof", "depth_fused",
+  "tilt_prior_sigma_deg" (the gravity prior on roll/pitch, null when none),
   "covariance_convention", "sessions": {folder name: {"placed", "T_W_S"
   (4x4 row-major nested lists), "covariance" (6x6, rotation first, rad and
   m), "targets", "via", "residuals", "diagnostic_6dof"...}}}. Sessions
@@ -68,6 +71,7 @@ from postproc.merge.averaging import (
     drift_weighted_mean,
     estimate_drift_model,
     fuse_pose_estimates,
+    local_frame_variance,
     pose_residuals,
     robust_pose_mean,
 )
@@ -119,7 +123,17 @@ class MergeOptions:
         by generalised least squares (`averaging.drift_weighted_mean`); the
         covariance then includes the drift. Used in sessions where some target
         was filmed in two passes (`pass_gap_s` apart), which measures the drift.
-        False: the robust means as they are.
+        False: the robust means (all passes alike, the overlay of the maps at the
+        targets); where the drift is measured, each target's covariance then grows
+        by how far its local map frame drifts from the session's mean frame
+        (`averaging.local_frame_variance`), so placement weighs targets for the overlay.
+    tilt_sigma_deg: (ours) the roll/pitch error of each session's gravity alignment
+        (degrees, 1 sigma per axis, as the SLAM reports it). None: no prior (dof 6
+        fits the tilt from the targets alone, dof 4 holds it at zero). Given: the
+        placement is a 6-DoF fit whose relative roll and pitch get this prior
+        (`align.align_6dof`), for dof 6 and for "auto" (depth-fused sessions too:
+        the 4-DoF fit is this prior's limit of a perfect gravity alignment); an
+        explicit dof 4 still holds the tilt at zero.
     drift_rate_rotation_deg_per_sqrt_s / drift_rate_translation_m_per_sqrt_s: the
         prior drift rate (1 sigma per axis after one second, growing with the square
         root of time); each session's own rate is measured from the differences
@@ -143,6 +157,7 @@ class MergeOptions:
     drift_rotation_sigma_deg: float = 0.2
     drift_translation_sigma_m: float = 0.02
     drift_weighting: bool = True
+    tilt_sigma_deg: float | None = None
     drift_rate_rotation_deg_per_sqrt_s: float = 0.02
     drift_rate_translation_m_per_sqrt_s: float = 0.003
     camera: str = "cam0"
@@ -217,7 +232,17 @@ def run(
             f"({', '.join(s.name for s in sessions)})"
         )
     depth_fused = all(s.depth_fused for s in sessions)
-    dof: Literal[4, 6] = (4 if depth_fused else 6) if options.dof == "auto" else options.dof
+    if options.dof != "auto":
+        dof: Literal[4, 6] = options.dof
+    elif options.tilt_sigma_deg is not None and options.method == "ours":
+        dof = 6
+    else:
+        dof = 4 if depth_fused else 6
+    tilt_prior_rad = (
+        None
+        if options.tilt_sigma_deg is None or dof == 4
+        else float(np.deg2rad(options.tilt_sigma_deg))
+    )
     observations = _observe(options, sessions, grids, target_names)
 
     if options.method == "ours":
@@ -229,7 +254,9 @@ def run(
         for s in sessions
     }
     if options.method == "ours":
-        placements = place_sessions(estimates, reference, dof=dof)
+        placements = place_sessions(
+            estimates, reference, dof=dof, tilt_prior_sigma_rad=tilt_prior_rad
+        )
     else:
         placements = _place_paper(estimates, reference)
     for session in sessions:
@@ -272,7 +299,7 @@ def run(
             overwrite=overwrite,
         )
     document = _transforms_document(
-        options, sessions, reference, dof, depth_fused, placements, estimates
+        options, sessions, reference, dof, depth_fused, placements, estimates, tilt_prior_rad
     )
     write_text_atomic(transforms_path, json.dumps(document, indent=2) + "\n", overwrite=overwrite)
     return transforms_path
@@ -304,6 +331,12 @@ def _check_options(
         value = getattr(options, name)
         if not (value > 0 and np.isfinite(value)):
             raise StageError(f"merge: {name} must be a positive number, got {value}")
+    if options.tilt_sigma_deg is not None and not (
+        options.tilt_sigma_deg > 0 and np.isfinite(options.tilt_sigma_deg)
+    ):
+        raise StageError(
+            f"merge: tilt_sigma_deg must be a positive number or None, got {options.tilt_sigma_deg}"
+        )
     if not slam_dirs:
         raise StageError("merge: no SLAM folder given")
     if not targets:
@@ -551,7 +584,8 @@ def _average_ours(
     target_names: Sequence[str],
     observations: Sequence[Observation],
 ) -> dict[str, dict[str, PoseAverage]]:
-    """Per session and target: robust mean (outliers out), then the drift-weighted mean.
+    """Per session and target: robust mean (outliers out), then the drift-weighted mean
+    (or, with `drift_weighting` off, the robust mean with the local-frame variance).
 
     The drift model (per-keyframe noise, drift rate) is fitted once per session
     over all its targets' inliers, since the targets share that session's SLAM.
@@ -581,9 +615,6 @@ def _average_ours(
                 prior_translation_sigma_m=options.drift_translation_sigma_m,
             )
             robust[name] = (chosen, dataclasses.replace(average, covariance=covariance), passes)
-        if not options.drift_weighting:
-            averages[session.name] = {name: value[1] for name, value in robust.items()}
-            continue
         anchor_ns = session.anchor_ns
         model = estimate_drift_model(
             [average.residuals[average.inliers] for _, average, _ in robust.values()],
@@ -598,6 +629,26 @@ def _average_ours(
             # the prior alone should not reweigh keyframes; keep the robust means.
             log.info("%s: no target seen in two passes: drift not measured", session.name)
             averages[session.name] = {name: value[1] for name, value in robust.items()}
+            continue
+        if not options.drift_weighting:
+            # Equal passes (the overlay of the maps): the targets' local frames differ by
+            # the drift between them, which no rigid placement absorbs; it joins each
+            # target's covariance so the placement weighs the targets for the overlay.
+            variance = local_frame_variance(
+                model,
+                [
+                    float(np.mean(_seconds(chosen, anchor_ns)[average.inliers]))
+                    for chosen, average, _ in robust.values()
+                ],
+            )
+            averages[session.name] = {
+                name: dataclasses.replace(
+                    average, covariance=average.covariance + np.diag(extra_variance)
+                )
+                for (name, (_, average, _)), extra_variance in zip(
+                    robust.items(), variance, strict=True
+                )
+            }
             continue
         log.info(
             "%s: keyframe noise %.3f deg, %.1f mm; drift %.4f deg, %.2f mm per sqrt(s) "
@@ -755,6 +806,7 @@ def _transforms_document(
     depth_fused: bool,
     placements: dict[str, Placement],
     estimates: dict[str, dict[str, TargetEstimate]],
+    tilt_prior_rad: float | None,
 ) -> dict[str, Any]:
     entries: dict[str, Any] = {}
     for session in sessions:
@@ -808,6 +860,9 @@ def _transforms_document(
         "method": options.method,
         "dof": dof,
         "depth_fused": depth_fused,
+        "tilt_prior_sigma_deg": (
+            None if tilt_prior_rad is None else float(np.rad2deg(tilt_prior_rad))
+        ),
         "covariance_convention": COVARIANCE_CONVENTION,
         "sessions": entries,
     }

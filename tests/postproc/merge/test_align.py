@@ -15,6 +15,7 @@ from postproc.merge.align import (
     invert_with_covariance,
     place_sessions,
     tilt_between_rad,
+    tilt_vector_rad,
     yaw_rad,
 )
 from postproc.merge.averaging import pose_residuals
@@ -177,11 +178,87 @@ def test_place_sessions_chains_and_leaves_unconnected_sessions_out():
     assert placed["b"].diagnostic_6dof is not None
 
 
+def test_tilt_vector_is_the_roll_pitch_part():
+    w = np.array([0.03, -0.02])
+    rotation = so3_exp([*w, 0.0]) @ _gravity_aligned(2.0, [0, 0, 0])[:3, :3]
+    np.testing.assert_allclose(tilt_vector_rad(rotation), w, atol=1e-12)
+    np.testing.assert_allclose(tilt_vector_rad(_gravity_aligned(-1.0, [0, 0, 0])), 0.0)
+    # A small rotation applied on the left adds its x and y parts (first order).
+    delta = np.array([1e-4, 2e-4, 0.5e-4])
+    moved = tilt_vector_rad(so3_exp(delta) @ rotation)
+    np.testing.assert_allclose(moved - w, delta[:2], atol=1e-5)
+    np.testing.assert_allclose(tilt_vector_rad(np.diag([1.0, -1.0, -1.0])), [np.pi, 0.0])
+
+
+def _tilted_truth(rng, tilt_sigma_rad):
+    """A relative pose of two gravity-aligned sessions, each tilted by tilt_sigma per axis."""
+    tilt = rng.normal(0.0, np.sqrt(2.0) * tilt_sigma_rad, 2)
+    yaw = rng.uniform(-np.pi, np.pi)
+    return make_pose(so3_exp([*tilt, 0.0]) @ _gravity_aligned(yaw, [0, 0, 0])[:3, :3], [4, -2, 1])
+
+
+def test_tilt_prior_limits_are_6dof_and_4dof():
+    rng = np.random.default_rng(11)
+    truth = _tilted_truth(rng, np.deg2rad(0.3))
+    pairs = _scene(rng, truth, TARGETS, np.deg2rad(0.2), 0.01)
+    loose = align_6dof(pairs, tilt_prior_sigma_rad=10.0)
+    np.testing.assert_allclose(loose.a_from_b, align_6dof(pairs).a_from_b, atol=1e-6)
+    tight = align_6dof(pairs, tilt_prior_sigma_rad=1e-9)
+    assert tilt_between_rad(tight.a_from_b, np.eye(4)) < 1e-8
+    assert np.all(np.diag(tight.covariance)[:2] < 1e-17)
+    assert tight.dof == 6
+
+
+def test_tilt_prior_beats_4dof_and_6dof_when_sessions_are_slightly_tilted():
+    """Relative tilt drawn from the prior, target evidence of similar strength: the MAP
+    fit's roll/pitch error is below both the 4-DoF one (which keeps the whole tilt) and
+    the 6-DoF one (which keeps all the noise), and its covariance predicts it."""
+    rng = np.random.default_rng(12)
+    sigma = np.deg2rad(0.05)
+    errors = {"4": [], "6": [], "prior": []}
+    predicted = []
+    for _ in range(150):
+        truth = _tilted_truth(rng, sigma)
+        pairs = _scene(rng, truth, TARGETS, np.deg2rad(0.06), 0.005)
+        fits = {
+            "4": align_4dof(pairs),
+            "6": align_6dof(pairs),
+            "prior": align_6dof(pairs, tilt_prior_sigma_rad=sigma),
+        }
+        for name, fit in fits.items():
+            errors[name].append(pose_residuals(fit.a_from_b[None], truth)[0, :2])
+        predicted.append(np.diag(fits["prior"].covariance)[:2])
+    rms = {k: np.sqrt(np.mean(np.square(v))) for k, v in errors.items()}
+    assert rms["prior"] < 0.9 * rms["4"] and rms["prior"] < 0.9 * rms["6"]
+    ratio = np.mean(np.square(errors["prior"])) / np.mean(predicted)
+    assert ratio == pytest.approx(1.0, abs=0.35)
+
+
+def test_place_sessions_passes_the_tilt_prior():
+    rng = np.random.default_rng(13)
+    truth = _tilted_truth(rng, np.deg2rad(1.0))
+    cov = np.diag([np.deg2rad(0.05) ** 2] * 3 + [0.005**2] * 3)
+    estimates = {
+        "a": {f"t{i}": TargetEstimate(t, cov) for i, t in enumerate(TARGETS)},
+        "b": {f"t{i}": TargetEstimate(invert_pose(truth) @ t, cov) for i, t in enumerate(TARGETS)},
+    }
+    free = place_sessions(estimates, "a", dof=6)["b"].world_from_session
+    held = place_sessions(estimates, "a", dof=6, tilt_prior_sigma_rad=1e-6)["b"]
+    # Noise-free targets: the free fit finds the tilt, a near-certain prior removes it.
+    assert pose_difference(free, truth)[0] < 1e-9
+    assert tilt_between_rad(held.world_from_session, np.eye(4)) < 1e-5
+    assert held.alignment is not None and held.alignment.dof == 6
+
+
 def test_align_raise_paths():
     with pytest.raises(ValueError, match="no shared target"):
         align_6dof([])
     with pytest.raises(ValueError, match="no shared target"):
         align_4dof([])
+    pairs = _scene(np.random.default_rng(0), np.eye(4), TARGETS, 0.01, 0.01)
+    for sigma in (0.0, -1.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="tilt_prior_sigma_rad must be positive"):
+            align_6dof(pairs, tilt_prior_sigma_rad=sigma)
     with pytest.raises(ValueError, match="dof must be 4 or 6"):
         align_sessions([], dof=5)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="reference"):

@@ -11,6 +11,7 @@ from postproc.merge.averaging import (
     drift_weighted_mean,
     estimate_drift_model,
     fuse_pose_estimates,
+    local_frame_variance,
     pose_residuals,
     robust_pose_mean,
 )
@@ -218,6 +219,27 @@ def test_drift_weighted_mean_without_drift_is_the_plain_mean():
     np.testing.assert_allclose(np.diag(covariance), NOISE / len(poses), rtol=1e-9)
     with pytest.raises(ValueError, match="times"):
         drift_weighted_mean(poses, PASS_TIMES[:-1], model, start=poses[0])
+
+
+def test_local_frame_variance_is_the_walk_about_the_targets_mean():
+    """Random walks sampled at three targets' times: each target's offset from the
+    mean of the three has the variance the formula gives; one target has none."""
+    rng = np.random.default_rng(21)
+    times = np.array([30.0, 5.0, 120.0])
+    order = np.argsort(times)
+    steps = rng.normal(size=(20000, 3)) * np.sqrt(np.diff(np.r_[0.0, times[order]]))
+    walk = np.empty_like(steps)
+    walk[:, order] = np.cumsum(steps, axis=1)
+    empirical = np.var(walk - walk.mean(axis=1, keepdims=True), axis=0)
+    model = DriftModel(drift_rate=RATE, noise=NOISE)
+    variance = local_frame_variance(model, times)
+    assert variance.shape == (3, 6)
+    np.testing.assert_allclose(variance / RATE, np.tile(empirical[:, None], 6), rtol=0.05)
+    # Two targets: a quarter of the drift between them each; a lone target: none.
+    np.testing.assert_allclose(local_frame_variance(model, [10.0, 90.0]), [RATE * 20.0] * 2)
+    np.testing.assert_allclose(local_frame_variance(model, [50.0]), np.zeros((1, 6)))
+    with pytest.raises(ValueError, match="no target"):
+        local_frame_variance(model, [])
 
 
 def test_estimate_drift_model_measures_noise_and_rate():

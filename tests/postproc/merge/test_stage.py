@@ -154,6 +154,34 @@ def test_depth_fused_sessions_are_detected_and_aligned_in_4dof(survey, tmp_path)
         run(MergeOptions(plot=False), [folders[0], folders[2]], target_paths, out2).read_text()
     )
     assert mixed["depth_fused"] is False and mixed["dof"] == 6
+    assert mixed["tilt_prior_sigma_deg"] is None
+    # With the SLAM's tilt uncertainty, "auto" fits 6 DoF with a gravity prior instead.
+    prior = json.loads(
+        run(
+            MergeOptions(plot=False, tilt_sigma_deg=0.05),
+            folders[:2],
+            target_paths,
+            tmp_path / "prior",
+        ).read_text()
+    )
+    assert prior["depth_fused"] is True and prior["dof"] == 6
+    assert prior["tilt_prior_sigma_deg"] == pytest.approx(0.05)
+    entry = prior["sessions"]["dive2"]
+    assert entry["dof"] == 6 and "diagnostic_6dof" not in entry
+    rot, trans = pose_difference(np.array(entry["T_W_S"]), expected)
+    assert np.rad2deg(rot) < 0.5 and trans < 0.05
+    # The posterior roll/pitch is never looser than the prior (sqrt(2) x 0.05 deg per axis).
+    covariance = np.array(entry["covariance"])
+    assert np.all(np.sqrt(np.diag(covariance)[:2]) <= np.deg2rad(0.05) * np.sqrt(2.0))
+    explicit_4 = json.loads(
+        run(
+            MergeOptions(plot=False, dof=4, tilt_sigma_deg=0.05),
+            folders[:2],
+            target_paths,
+            tmp_path / "four",
+        ).read_text()
+    )
+    assert explicit_4["dof"] == 4 and explicit_4["tilt_prior_sigma_deg"] is None
     with pytest.raises(InputError, match="depth fusion requested"):
         run(MergeOptions(depth_fused=True), [folders[2]], target_paths, tmp_path / "x")
 
@@ -180,6 +208,8 @@ def test_raise_paths(survey, tmp_path):
         (MergeOptions(mad_threshold=-1.0), "mad_threshold"),
         (MergeOptions(drift_rate_rotation_deg_per_sqrt_s=0.0), "drift_rate_rotation"),
         (MergeOptions(drift_rate_translation_m_per_sqrt_s=np.nan), "drift_rate_translation"),
+        (MergeOptions(tilt_sigma_deg=0.0), "tilt_sigma_deg"),
+        (MergeOptions(tilt_sigma_deg=np.inf), "tilt_sigma_deg"),
         (MergeOptions(reference="dive9"), "reference 'dive9'"),
     ]
     for options, message in bad_options:
@@ -235,12 +265,13 @@ def test_cli_subprocess(survey, tmp_path):
     env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
     command = [sys.executable, "-m", "postproc.cli", "merge", str(folders[0]), str(folders[1])]
     command += ["--targets", *map(str, target_paths), "--out", str(tmp_path / "out"), "--no-plot"]
+    command += ["--tilt-sigma-deg", "0.05"]
     done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert Path(done.stdout.strip()) == tmp_path / "out" / "transforms.json"
-    assert json.loads((tmp_path / "out" / "transforms.json").read_text())["sessions"]["dive2"][
-        "placed"
-    ]
+    document = json.loads((tmp_path / "out" / "transforms.json").read_text())
+    assert document["sessions"]["dive2"]["placed"]
+    assert document["tilt_prior_sigma_deg"] == 0.05
     failed = subprocess.run(
         [*command, "--reference", "nope", "--overwrite"],
         cwd=REPO,
@@ -342,3 +373,22 @@ def test_drift_weighting_leans_on_the_first_pass(tmp_path, caplog):
     assert errors[True] < 0.03
     # The covariance includes the drift of the first passes: the same size as the error.
     assert 0.3 < errors[True] / sigmas[True] < 3.0
+    # Equal passes: each target's covariance grows by its local frame's drift from the
+    # session's mean frame, in proportion to the drift rate (here shrunk toward the prior).
+    spread = {}
+    for rate in (0.003, 0.3):
+        out = tmp_path / f"overlay_{rate}"
+        run(
+            MergeOptions(
+                drift_weighting=False, drift_rate_translation_m_per_sqrt_s=rate, plot=False
+            ),
+            folders,
+            target_paths,
+            out,
+        )
+        targets = json.loads((out / "targets.json").read_text())
+        spread[rate] = [
+            np.trace(np.array(targets[m]["sessions"]["dive2"]["covariance"])[3:, 3:])
+            for m in targets
+        ]
+    assert all(big > 100 * small for big, small in zip(spread[0.3], spread[0.003], strict=True))
