@@ -5,14 +5,22 @@ completeness(d): fraction of truth-surface samples within d of a reconstructed p
 counting only the samples seen by at least `min_views` cameras (a surface nobody filmed
 cannot be reconstructed); F1 is their harmonic mean. Distances to the truth are exact
 point-to-triangle distances over the triangles near each point.
+
+Which samples a camera saw: `visibility` against true depth maps, which `seen_counts`
+makes itself with a numpy z-buffer of the truth mesh (`postproc.dense.zbuffer`) at low
+resolution, in the pinhole `undistorted_canvas` that holds a distorted camera's view.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from shared.calibration.cameras import CameraModel
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -155,12 +163,18 @@ def visibility(
     tolerance_m: float = 0.02,
     tolerance_rel: float = 0.01,
     nearest: int = 3,
+    one_sided: bool = False,
 ) -> tuple[IntArray, FloatArray]:
     """(counts (N,), ranges (N, nearest) m): how many cameras see each point (see
     `visibility_counts`, occlusion tested on the true depth maps `depth_maps_m`, camera
     z in m, inf or nan where nothing is hit) and the distances from the `nearest` closest
     of those cameras, ascending (inf where fewer see it). `ranges[:, 2]` is the range
-    within which a point is seen by three cameras."""
+    within which a point is seen by three cameras.
+
+    one_sided: only a surface nearer than the point (beyond the tolerance) hides it; a
+    depth map reading farther, or inf, does not (for points on the depth maps' own
+    surface: at a silhouette the pixel centre may miss the point's surface). NaN pixels
+    still see nothing."""
     points = np.asarray(points_m, dtype=np.float64)
     counts = np.zeros(len(points), np.int64)
     ranges = np.full((len(points), nearest + 1), np.inf)
@@ -175,7 +189,12 @@ def visibility(
         idx, u, v = front[inside], u[inside], v[inside]
         z = pc[idx, 2]
         true_z = depth[v, u].astype(np.float64)
-        seen = np.isfinite(true_z) & (np.abs(true_z - z) <= tolerance_m + tolerance_rel * z)
+        slack = tolerance_m + tolerance_rel * z
+        if one_sided:
+            with np.errstate(invalid="ignore"):
+                seen = true_z >= z - slack  # False for NaN
+        else:
+            seen = np.isfinite(true_z) & (np.abs(true_z - z) <= slack)
         idx = idx[seen]
         counts[idx] += 1
         if nearest > 0:
@@ -227,3 +246,117 @@ def evaluate(
         )
         for d in thresholds_m
     ]
+
+
+def undistorted_canvas(
+    camera: CameraModel, scale: float = 0.25
+) -> tuple[FloatArray, int, int, npt.NDArray[np.bool_]]:
+    """A pinhole image that holds the whole field of view of a distorted camera, for
+    depth maps: (K 3x3, width, height, filmed (height, width) bool).
+
+    The pinhole has the camera's focal lengths times `scale` and is just large enough for
+    the undistorted outline of the real image (barrel distortion pushes its corners
+    out); `filmed` marks the pixels whose ray lands inside the real image, so a depth map
+    set to NaN elsewhere makes `visibility` count only what the camera really filmed."""
+    width, height = camera.width, camera.height
+    K0 = camera.intrinsic_matrix
+    # The real image's outline (pixel edges, OpenCV centres) undistorted to rays.
+    n = 4 * max(width, height)
+    s = np.linspace(0.0, 1.0, n)
+    x_edge, y_edge = width * s - 0.5, height * s - 0.5
+    outline = np.concatenate([
+        np.column_stack([x_edge, np.full(n, -0.5)]),
+        np.column_stack([x_edge, np.full(n, height - 0.5)]),
+        np.column_stack([np.full(n, -0.5), y_edge]),
+        np.column_stack([np.full(n, width - 0.5), y_edge]),
+    ])  # fmt: skip
+    rays = camera.unproject(outline)
+    rays = rays[np.all(np.isfinite(rays), axis=1)]
+    fx, fy = K0[0, 0] * scale, K0[1, 1] * scale
+    x_lo, x_hi = rays[:, 0].min(), rays[:, 0].max()
+    y_lo, y_hi = rays[:, 1].min(), rays[:, 1].max()
+    canvas_w = int(np.ceil((x_hi - x_lo) * fx))
+    canvas_h = int(np.ceil((y_hi - y_lo) * fy))
+    # Pixel u spans [u - 0.5, u + 0.5]: the left edge -0.5 is at x_lo.
+    K = np.array([[fx, 0.0, -x_lo * fx - 0.5], [0.0, fy, -y_lo * fy - 0.5], [0.0, 0.0, 1.0]])
+    u, v = np.meshgrid(np.arange(canvas_w), np.arange(canvas_h))
+    xy = np.column_stack([(u.ravel() - K[0, 2]) / fx, (v.ravel() - K[1, 2]) / fy])
+    pixels = camera.project(np.column_stack([xy, np.ones(len(xy))]))
+    with np.errstate(invalid="ignore"):
+        filmed = (
+            (pixels[:, 0] >= -0.5)
+            & (pixels[:, 0] < width - 0.5)
+            & (pixels[:, 1] >= -0.5)
+            & (pixels[:, 1] < height - 0.5)
+        )
+    return K, canvas_w, canvas_h, filmed.reshape(canvas_h, canvas_w)
+
+
+def seen_counts(
+    points_m: FloatArray,
+    vertices_m: FloatArray,
+    triangles: IntArray,
+    K: FloatArray,
+    width: int,
+    height: int,
+    cams_from_world: list[FloatArray] | FloatArray,
+    *,
+    filmed: npt.NDArray[np.bool_] | None = None,
+    max_range_m: float = np.inf,
+    near_m: float = 0.05,
+    tolerance_m: float = 0.02,
+    tolerance_rel: float = 0.015,
+    progress_label: str | None = None,
+) -> IntArray:
+    """How many cameras see each point (N,) of the mesh's surface, occlusion included:
+    the mesh (world frame, m) is z-buffered into a pinhole depth map per camera
+    (`postproc.dense.zbuffer`, intrinsics K of a width x height image, NaN outside
+    `filmed` when given) and `visibility` tests each point within `max_range_m` of the
+    camera centre against it.
+
+    The points must lie on the mesh: only a surface in front of a point hides it (a
+    one-sided test), which is what lets a low-resolution depth map work: a point is
+    rounded to the nearest pixel centre, whose depth differs from the point's by up to
+    about z * (0.7 px / f) * tan(incidence), under 1.5 % of z up to ~60 degrees
+    incidence for f ~ 85 px (a quarter of a 640 px GoPro-like image), and at a silhouette
+    the pixel centre may fall on the background, which does not hide the point. A nearer
+    surface hides a point when it is more than tolerance_m + tolerance_rel * z in front
+    of it; points within half a pixel of an occluding edge, or closer behind an occluder
+    than that tolerance, may be counted wrongly. On the demo's scene (120 true views, a
+    quarter of the image) the samples seen by 3 views agree with a full-resolution ray
+    cast to about 1 % either way (with 0.03 + 0.03 z: 3 % too many, points close behind
+    a nearer surface).
+
+    progress_label: show a progress bar over the cameras with this label."""
+    from scipy.spatial import cKDTree
+
+    from postproc.dense.zbuffer import MeshRasteriser
+
+    points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    counts = np.zeros(len(points), np.int64)
+    if len(points) == 0:
+        return counts
+    rasteriser = MeshRasteriser(vertices_m, triangles)
+    tree = cKDTree(points) if np.isfinite(max_range_m) else None
+    poses = [np.asarray(p, dtype=np.float64) for p in cams_from_world]
+    loop = poses
+    if progress_label is not None:
+        from shared.progress import progress
+
+        loop = progress(poses, total=len(poses), desc=progress_label, unit="view")
+    for pose in loop:
+        if tree is not None:
+            centre = -pose[:3, :3].T @ pose[:3, 3]
+            near = np.asarray(tree.query_ball_point(centre, max_range_m), dtype=np.int64)
+        else:
+            near = np.arange(len(points))
+        if len(near) == 0:
+            continue
+        depth = rasteriser.depth_map(pose, K, width, height, near_m=near_m,
+                                     max_range_m=max_range_m)  # fmt: skip
+        if filmed is not None:
+            depth[~filmed] = np.nan
+        seen, _ = visibility(points[near], [K], [pose], [depth], tolerance_m=tolerance_m,
+                             tolerance_rel=tolerance_rel, nearest=0, one_sided=True)  # fmt: skip
+        counts[near] += seen
+    return counts

@@ -249,6 +249,8 @@ def _evaluation_html(evaluation: dict[str, Any]) -> str:
         rows.append(
             (f"dense ({dense['file']}): median distance to truth (m)", dense["median_distance_m"])
         )
+        if "completeness_basis" in dense:
+            rows.append(("dense: completeness is measured on the", dense["completeness_basis"]))
         for s in dense["scores"]:
             d = s["threshold_m"]
             rows.append(

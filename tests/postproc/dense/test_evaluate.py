@@ -108,3 +108,82 @@ def test_visibility_ranges_of_the_nearest_cameras() -> None:
     counts, ranges = visibility(point, [K] * 2, poses[:2], depths[:2], nearest=3)
     assert counts.tolist() == [2] and ranges[0, 2] == np.inf
     np.testing.assert_allclose(ranges[0, :2], [3.0, 4.0])
+
+
+def looking_down(x: float, y: float, height_m: float) -> np.ndarray:
+    """cam_from_world of a camera at (x, y, height_m) looking straight down (-z)."""
+    world_from_cam = np.eye(4)
+    world_from_cam[:3, :3] = np.column_stack([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
+    world_from_cam[:3, 3] = [x, y, height_m]
+    return np.linalg.inv(world_from_cam)
+
+
+def two_storeys() -> tuple[np.ndarray, np.ndarray]:
+    """Two 2 m squares, one above the other (z = 0 and z = -1): from above, the lower one
+    is hidden by the upper one wherever the camera stands over them."""
+    top, faces = square_mesh()
+    bottom = top + np.array([0, 0, -1.0])
+    return np.concatenate([top, bottom]) - [1.0, 1.0, 0.0], np.concatenate([faces, faces + 4])
+
+
+def test_seen_counts_hide_the_lower_storey() -> None:
+    from postproc.dense.evaluate import seen_counts
+
+    vertices, faces = two_storeys()
+    K = np.array([[60.0, 0, 39.5], [0, 60.0, 29.5], [0, 0, 1]])
+    cams = [looking_down(x, y, 3.0) for x in (-0.3, 0.3) for y in (-0.3, 0.3)]
+    samples, tri = sample_surface(vertices, faces, 0.05, seed=2)
+    upper = tri < 2
+    counts = seen_counts(samples, vertices, faces, K, 80, 60, cams, max_range_m=10.0)
+    assert np.all(counts[upper] == 4) and np.all(counts[~upper] == 0)
+    # Out of range: nothing seen; a mask of the filmed pixels removes what lies outside it.
+    assert not seen_counts(samples, vertices, faces, K, 80, 60, cams, max_range_m=2.9).any()
+    filmed = np.ones((60, 80), bool)
+    filmed[:, :40] = False  # the left half of every image was not filmed
+    half = seen_counts(samples, vertices, faces, K, 80, 60, cams[:1], filmed=filmed)
+    # Camera 0 stands at x = -0.3, u = 39.5 + 20 (x + 0.3): pixels u >= 40 hold x > -0.3.
+    right = samples[:, 0] > -0.3 + 0.02
+    left = samples[:, 0] < -0.3 - 0.02
+    assert np.all(half[upper & right] == 1) and np.all(half[upper & left] == 0)
+    assert np.all(half[~upper] == 0)
+    assert len(seen_counts(np.zeros((0, 3)), vertices, faces, K, 80, 60, cams)) == 0
+
+
+def test_undistorted_canvas() -> None:
+    from postproc.dense.evaluate import undistorted_canvas
+    from postproc.dense.zbuffer import scaled_intrinsics
+    from shared.calibration.cameras import PinholeRadtan
+
+    plain = PinholeRadtan(640, 360, 340.0, 340.0, 319.5, 179.5, 0.0, 0.0, 0.0, 0.0)
+    K, w, h, filmed = undistorted_canvas(plain, 0.25)
+    assert (w, h) == (160, 90) and filmed.all()
+    np.testing.assert_allclose(K, scaled_intrinsics(plain.intrinsic_matrix, 0.25), atol=1e-6)
+    barrel = PinholeRadtan(640, 360, 339.2, 339.2, 326.54, 176.62, -0.22, 0.05, 3e-4, -2e-4)
+    K, w, h, filmed = undistorted_canvas(barrel, 0.25)
+    # Barrel distortion: the real image sees more than its pinhole of the same focal
+    # length, so the canvas is larger; the image's outline becomes a pincushion that
+    # reaches the canvas corners, not the middles of its sides.
+    assert w > 160 and h > 90
+    corners = [filmed[:4, :4], filmed[:4, -4:], filmed[-4:, :4], filmed[-4:, -4:]]
+    assert all(c.any() for c in corners) and filmed[h // 2, w // 2]
+    assert not filmed[0, w // 2] and not filmed[-1, w // 2] and not filmed[h // 2, 0]
+    # Every real pixel's ray lands on a filmed canvas pixel; rays just outside do not.
+    rng = np.random.default_rng(1)
+    pixels = rng.uniform([0, 0], [639, 359], (2000, 2))
+    rays = barrel.unproject(pixels)
+    uv = np.round((rays @ K.T)[:, :2]).astype(int)
+    assert np.mean(filmed[uv[:, 1], uv[:, 0]]) > 0.99
+    outside = barrel.unproject(np.array([[-8.0, 180.0], [648.0, 180.0], [320.0, -8.0]]))
+    uv = np.round((outside @ K.T)[:, :2]).astype(int)
+    assert not filmed[uv[:, 1], uv[:, 0]].any()
+
+
+def test_one_sided_visibility() -> None:
+    K = np.array([[10.0, 0, 1.5], [0, 10.0, 0.5], [0, 0, 1]])
+    # Four pixels in a row: farther than the point, inf, NaN, nearer than the point.
+    depth = np.array([[3.0, np.inf, np.nan, 1.0], [3.0, np.inf, np.nan, 1.0]], np.float32)
+    points = np.array([[(u - 1.5) / 10 * 2.0, 0.0, 2.0] for u in range(4)])
+    one, _ = visibility(points, [K], [np.eye(4)], [depth], nearest=0, one_sided=True)
+    two, _ = visibility(points, [K], [np.eye(4)], [depth], nearest=0)
+    np.testing.assert_array_equal(one, [1, 1, 0, 0])
+    np.testing.assert_array_equal(two, [0, 0, 0, 0])
