@@ -239,6 +239,11 @@ def _error(task, evaluation: dict) -> str:  # type: ignore[no-untyped-def]
         return (
             f"median {d['median_distance_m']:.3f} m; at {at['threshold_m']:.2f} m accuracy "
             f"{at['accuracy']:.2f}, completeness {at['completeness']:.2f}"
+            + (
+                " (of the filmed surface)"
+                if d.get("completeness_basis", "").startswith("filmed")
+                else " (of the truth inside the mesh's box)"
+            )
         )
     return ""
 
