@@ -241,7 +241,7 @@ def _error(task, evaluation: dict) -> str:  # type: ignore[no-untyped-def]
             f"{at['accuracy']:.2f}, completeness {at['completeness']:.2f}"
             + (
                 " (of the filmed surface)"
-                if d.get("completeness_basis", "").startswith("filmed")
+                if "filmed" in d.get("completeness_basis", "")
                 else " (of the truth inside the mesh's box)"
             )
         )
