@@ -8,8 +8,11 @@ SLAM-like priors: a path-proportional biased random walk (2 % of the distance
 travelled) plus heading drift and jitter, placed in the world by their true
 `T_W_S` (as the merge stage would). Our stage runs on the first `fraction` of
 each session (shorter dives at the same keyframe density) for every fraction:
-per size it prints the time of each step, seconds per keyframe (scaling) and
-the ATE of the priors and of the refined keyframes per session.
+per size it prints the time of each step (the first pass of triangulation and
+adjustment rounds at the priors, then the pass on tracks rebuilt at the refined
+poses, see `postproc.sfm.refine`), seconds per keyframe (scaling) and the ATE
+of the priors and of the refined keyframes per session, without alignment (the
+world frame and metric scale kept), rigid (se3) and similarity (sim3).
 
 The baseline, at the `--baseline-fractions` sizes, is what the paper did and the
 issue asks to beat: COLMAP from scratch on the same images, i.e. pycolmap 4.2.1
@@ -143,6 +146,7 @@ def print_ours(
     print(
         "  time: extract {extract_s:.1f} s, pairs {pairs_s:.2f} s, match {match_s:.1f} s, "
         "triangulate {triangulate_s:.1f} s, BA rounds {bundle_adjust_s:.1f} s".format(**sec)
+        + f", rebuilt tracks + BA rounds {sec.get('rebuild_tracks_s', 0.0):.1f} s"
         + f", total {total:.1f} s ({total / n:.3f} s/keyframe; load {load()})"
     )
     print(

@@ -8,11 +8,20 @@ position prior on every keyframe, filter observations) until 95 % of the
 cameras move less than `converged_change_m` in a round. The position priors keep the
 metric scale and the world frame; without them the gauge would float.
 
-Triangulation thresholds are wider than COLMAP's defaults (2 degrees): with
-drifting priors, the rays of one point seen from two ends of a loop miss each
-other by the drift over the viewing distance (0.2 m at 2 m is about 6
-degrees), and default thresholds break such tracks instead of closing the
-loop. The filters after each adjustment run at the usual 4 px.
+Two passes build the tracks. The first pass triangulates at the prior poses with
+thresholds wider than COLMAP's defaults (2 degrees): with drifting priors, the
+rays of one point seen from two ends of a loop miss each other by the drift
+over the viewing distance (0.2 m at 2 m is about 6 degrees), and default
+thresholds break such tracks instead of closing the loop. Its rounds run only
+until the cameras move less than the error the default thresholds tolerate
+(`RefineOptions.first_pass_converged_change_m`). Wide thresholds also let
+wrong observations into the tracks (merged at 8 px, continued at 8 degrees)
+which the 4 px filters keep, and they bias the adjustment: on the simulated
+surveys (bench/bench_sfm.py) the shape stayed up to 50 % worse than COLMAP's
+incremental mapper on the same matches, and loosening the priors tenfold made
+it worse still (the priors' weight is not the cause). So the rebuild pass
+throws those tracks away and rebuilds them at the refined poses with COLMAP's
+default thresholds, then adjusts again, with the same priors, until converged.
 
 Sessions without a world pose (no shared target in the merge) are tied in
 where natural features allow: their keyframes are registered one by one by
@@ -54,8 +63,19 @@ class RefineOptions:
     """How the prior poses are refined.
 
     triangulation_max_angle_deg: largest ray angle error to create or continue a track
-        (COLMAP default 2; widened for drifting priors).
-    merge_max_reproj_error_px: reprojection error to merge or complete tracks, pixels.
+        in the first pass, at the prior poses (COLMAP default 2; widened for drifting
+        priors).
+    merge_max_reproj_error_px: reprojection error to merge or complete tracks in the
+        first pass, pixels.
+    rebuild_tracks: run the rebuild pass (tracks rebuilt at the refined poses, see the
+        module docstring).
+    rebuilt_max_angle_deg, rebuilt_merge_max_reproj_error_px: the rebuild pass's
+        thresholds (COLMAP's defaults: 2 degrees, 4 px).
+    first_pass_converged_change_m: with `rebuild_tracks`, the first pass stops once 95 %
+        of the cameras move less than this in a round (or are predicted to), metres:
+        the rebuilt tracks only need poses good to about the rebuild pass's angle at the
+        viewing distance (2 degrees at 2 m is 7 cm), and the rebuild pass converges the
+        rest.
     filter_max_reproj_error_px: observations above this error after an adjustment are
         dropped, pixels. filter_min_tri_angle_deg: points seen under a smaller angle too.
     max_rounds: refinement rounds at most. converged_change_m: stop when 95 % of the
@@ -87,6 +107,10 @@ class RefineOptions:
 
     triangulation_max_angle_deg: float = 8.0
     merge_max_reproj_error_px: float = 8.0
+    rebuild_tracks: bool = True
+    rebuilt_max_angle_deg: float = 2.0
+    rebuilt_merge_max_reproj_error_px: float = 4.0
+    first_pass_converged_change_m: float = 0.05
     filter_max_reproj_error_px: float = 4.0
     filter_min_tri_angle_deg: float = 1.5
     max_rounds: int = 6
@@ -114,8 +138,17 @@ class RefineOptions:
             )
         if self.max_rounds < 1:
             raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds}")
-        if self.triangulation_max_angle_deg <= 0 or self.filter_max_reproj_error_px <= 0:
-            raise ValueError("triangulation and filter thresholds must be positive")
+        thresholds = (
+            self.triangulation_max_angle_deg,
+            self.merge_max_reproj_error_px,
+            self.rebuilt_max_angle_deg,
+            self.rebuilt_merge_max_reproj_error_px,
+            self.filter_max_reproj_error_px,
+            self.converged_change_m,
+            self.first_pass_converged_change_m,
+        )
+        if not all(value > 0 for value in thresholds):
+            raise ValueError("triangulation, filter and convergence thresholds must be positive")
 
 
 @dataclass
@@ -125,7 +158,8 @@ class RefineResult:
     world_from_cam: refined `T_W_C` (4, 4) of every keyframe in the model, by image name.
     world_from_session: `T_W_S` fitted for sessions that were not placed and could be
         tied in, by session index. rounds: one record per refinement round (seconds,
-        largest camera move in metres, points, mean reprojection error in pixels).
+        largest camera move in metres, points, mean reprojection error in pixels,
+        `rebuilt_tracks` 1.0 in the rebuild pass).
     mapper: which mapper produced the model ("prior" or "incremental").
     """
 
@@ -138,8 +172,9 @@ class RefineResult:
 
 
 def _pipeline_options(
-    options: RefineOptions, *, use_priors: bool
+    options: RefineOptions, *, use_priors: bool, rebuilt: bool = False
 ) -> pycolmap.IncrementalPipelineOptions:
+    """COLMAP's options from ours; `rebuilt`: the rebuild pass's (default) thresholds."""
     import pycolmap
 
     pipeline = pycolmap.IncrementalPipelineOptions()
@@ -158,11 +193,15 @@ def _pipeline_options(
     pipeline.mapper.ba_global_ignore_redundant_points3D = options.skip_redundant_points
     pipeline.mapper.ba_global_prune_points_min_coverage_gain = options.redundant_min_coverage_gain
     tri = pipeline.triangulation
-    tri.create_max_angle_error = options.triangulation_max_angle_deg
-    tri.continue_max_angle_error = options.triangulation_max_angle_deg
-    tri.re_max_angle_error = max(options.triangulation_max_angle_deg, tri.re_max_angle_error)
-    tri.merge_max_reproj_error = options.merge_max_reproj_error_px
-    tri.complete_max_reproj_error = options.merge_max_reproj_error_px
+    angle_deg = options.rebuilt_max_angle_deg if rebuilt else options.triangulation_max_angle_deg
+    merge_px = (
+        options.rebuilt_merge_max_reproj_error_px if rebuilt else options.merge_max_reproj_error_px
+    )
+    tri.create_max_angle_error = angle_deg
+    tri.continue_max_angle_error = angle_deg
+    tri.re_max_angle_error = max(angle_deg, tri.re_max_angle_error)
+    tri.merge_max_reproj_error = merge_px
+    tri.complete_max_reproj_error = merge_px
     tri.ignore_two_view_tracks = options.ignore_two_view_tracks
     return pipeline
 
@@ -218,10 +257,13 @@ class _Mapper:
         database_path: Path,
         world_from_cam: dict[str, FloatArray],
         options: RefineOptions,
+        *,
+        rebuilt: bool = False,
     ) -> None:
         import pycolmap
 
         self.options = options
+        self.rebuilt = rebuilt
         self.cache = _load_cache(database_path, options)
         self.reconstruction = _seeded(self.cache, world_from_cam)
         if self.reconstruction.num_reg_frames() < 2:
@@ -229,7 +271,7 @@ class _Mapper:
                 f"{database_path}: fewer than 2 keyframes with matches and a prior pose "
                 "(expected overlapping keyframes; check the images and the pair choice)"
             )
-        self.pipeline = _pipeline_options(options, use_priors=True)
+        self.pipeline = _pipeline_options(options, use_priors=True, rebuilt=rebuilt)
         self.mapper_options = self.pipeline.get_mapper()
         self.tri_options = self.pipeline.get_triangulation()
         self.ba_options = self.pipeline.get_global_bundle_adjustment()
@@ -249,11 +291,12 @@ class _Mapper:
             added += self.mapper.triangulate_image(self.tri_options, image_id)
         return added
 
-    def refine_rounds(self, rounds: list[dict[str, float]]) -> None:
+    def refine_rounds(self, rounds: list[dict[str, float]], *, converged_change_m: float) -> None:
         """Rounds of (merge/complete tracks, retriangulate, BA with priors, filter) until
         95 % of the camera centres move less than `converged_change_m` (or are predicted
         to in the next round, see `RefineOptions.predict_convergence`)."""
         previous = float("inf")
+        pass_name = "rebuilt" if self.rebuilt else "first"
         for _ in range(self.options.max_rounds):
             start = time.perf_counter()
             before = camera_poses(self.reconstruction)
@@ -287,22 +330,25 @@ class _Mapper:
                     "mean_reprojection_error_px": float(
                         self.reconstruction.compute_mean_reprojection_error()
                     ),
+                    "rebuilt_tracks": float(self.rebuilt),
                 }
             )
             log.info(
-                "refinement round %d: largest camera move %.4f m, %d points, %.3f px, %.1f s",
+                "refinement round %d (%s pass): largest camera move %.4f m, %d points, "
+                "%.3f px, %.1f s",
                 len(rounds),
+                pass_name,
                 move,
                 self.reconstruction.num_points3D(),
                 rounds[-1]["mean_reprojection_error_px"],
                 rounds[-1]["seconds"],
             )
-            if typical < self.options.converged_change_m:
+            if typical < converged_change_m:
                 break
             # A prediction needs two rounds, the second moving less than the first.
             contracting = np.isfinite(previous) and typical < previous
             predicted = typical * typical / previous if contracting else float("inf")
-            if self.options.predict_convergence and predicted < self.options.converged_change_m:
+            if self.options.predict_convergence and predicted < converged_change_m:
                 log.info("next round predicted to move cameras by %.4f m: stopping", predicted)
                 break
             previous = typical
@@ -403,9 +449,15 @@ def _write_priors(
 def refine_with_priors(
     database_path: Path, keyframes: KeyframeSet, options: RefineOptions
 ) -> RefineResult:
-    """Triangulate at the prior poses, BA with priors in rounds; tie in unplaced sessions."""
+    """Triangulate at the prior poses, BA with priors in rounds; tie in unplaced sessions;
+    rebuild the tracks at the refined poses and adjust again (see the module docstring)."""
     seconds: dict[str, float] = {}
     rounds: list[dict[str, float]] = []
+    first_converged_m = (
+        options.first_pass_converged_change_m
+        if options.rebuild_tracks
+        else options.converged_change_m
+    )
     placed = {
         keyframes.names[i]: keyframes.world_from_cam[i] for i in np.flatnonzero(keyframes.placed)
     }
@@ -415,7 +467,7 @@ def refine_with_priors(
     seconds["triangulate_s"] = time.perf_counter() - start
     log.info("triangulated %d observations at the prior poses", triangulated)
     start = time.perf_counter()
-    mapper.refine_rounds(rounds)
+    mapper.refine_rounds(rounds, converged_change_m=first_converged_m)
     seconds["bundle_adjust_s"] = time.perf_counter() - start
     world_from_session: dict[int, FloatArray] = {}
     unplaced_sessions = np.unique(keyframes.session[~keyframes.placed])
@@ -430,7 +482,8 @@ def refine_with_priors(
     mapper.close()
     result_poses = camera_poses(mapper.reconstruction)
     if world_from_session:
-        # Second pass: every session placed, priors for the newly placed ones.
+        # Second pass (wide thresholds again): every session placed, priors for the newly
+        # placed ones.
         start = time.perf_counter()
         seeds = dict(result_poses)
         newly: list[int] = []
@@ -443,12 +496,22 @@ def refine_with_priors(
         _write_priors(database_path, keyframes, newly, world_from_cam)
         mapper = _Mapper(database_path, seeds, options)
         mapper.triangulate()
-        mapper.refine_rounds(rounds)
+        mapper.refine_rounds(rounds, converged_change_m=first_converged_m)
         mapper.close()
         result_poses = camera_poses(mapper.reconstruction)
+        seconds["second_pass_s"] = time.perf_counter() - start
+    if options.rebuild_tracks:
+        start = time.perf_counter()
+        mapper = _Mapper(database_path, result_poses, options, rebuilt=True)
+        triangulated = mapper.triangulate()
+        log.info("rebuilt tracks at the refined poses: %d observations", triangulated)
+        mapper.refine_rounds(rounds, converged_change_m=options.converged_change_m)
+        mapper.close()
+        result_poses = camera_poses(mapper.reconstruction)
+        seconds["rebuild_tracks_s"] = time.perf_counter() - start
+    if world_from_session:
         # Refit on the final poses (more keyframes, adjusted together).
         world_from_session.update(fit_unplaced_sessions(keyframes, result_poses, options))
-        seconds["second_pass_s"] = time.perf_counter() - start
     return RefineResult(
         reconstruction=mapper.reconstruction,
         world_from_cam=result_poses,

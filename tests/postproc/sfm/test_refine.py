@@ -52,7 +52,15 @@ def test_fill_missing_carries_the_nearest_correction() -> None:
 
 
 @pytest.mark.parametrize(
-    "kwargs", [{"mapper": "magic"}, {"max_rounds": 0}, {"triangulation_max_angle_deg": 0.0}]
+    "kwargs",
+    [
+        {"mapper": "magic"},
+        {"max_rounds": 0},
+        {"triangulation_max_angle_deg": 0.0},
+        {"rebuilt_max_angle_deg": -1.0},
+        {"rebuilt_merge_max_reproj_error_px": 0.0},
+        {"first_pass_converged_change_m": 0.0},
+    ],
 )
 def test_refine_options_reject_bad_values(kwargs: dict[str, object]) -> None:
     with pytest.raises(ValueError):
