@@ -92,6 +92,12 @@ class RefineOptions:
         numerous; COLMAP's default).
     ba_gradient_tolerance, ba_function_tolerance, ba_max_iterations: Ceres stopping rules
         of each adjustment (COLMAP's global-BA defaults).
+    ba_max_direct_sparse_images: up to this many keyframes the adjustment factorises the
+        reduced camera system directly (Ceres sparse Schur); beyond, it iterates (Schur +
+        conjugate gradients). COLMAP switches at 1000 images, a limit set for unordered
+        photo collections; keyframes of a video survey see few others each, so the direct
+        solver stays sparse: on a simulated 10-minute dive (1227 keyframes, 1.6 M
+        residuals) it adjusted 1.3-1.6x faster than the iterative one.
     robust_prior_loss: Cauchy loss on the position priors (a few wrong priors then
         cannot pull the model). refine_intrinsics: also adjust focal length and
         distortion (off: the cameras are calibrated).
@@ -122,6 +128,7 @@ class RefineOptions:
     ba_gradient_tolerance: float = 1.0
     ba_function_tolerance: float = 0.0
     ba_max_iterations: int = 50
+    ba_max_direct_sparse_images: int = 8000
     robust_prior_loss: bool = True
     refine_intrinsics: bool = False
     min_num_matches: int = 15
@@ -138,6 +145,11 @@ class RefineOptions:
             )
         if self.max_rounds < 1:
             raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds}")
+        if self.ba_max_direct_sparse_images < 0:
+            raise ValueError(
+                "ba_max_direct_sparse_images must be 0 or more, got "
+                f"{self.ba_max_direct_sparse_images}"
+            )
         thresholds = (
             self.triangulation_max_angle_deg,
             self.merge_max_reproj_error_px,
@@ -282,6 +294,9 @@ class _Mapper:
         solver.gradient_tolerance = options.ba_gradient_tolerance
         solver.function_tolerance = options.ba_function_tolerance
         solver.max_num_iterations = options.ba_max_iterations
+        self.ba_options.ceres.max_num_images_direct_sparse_cpu_solver = (
+            options.ba_max_direct_sparse_images
+        )
         self.mapper = pycolmap.IncrementalMapper(self.cache)
         self.mapper.begin_reconstruction(self.reconstruction)
 
