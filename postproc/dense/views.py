@@ -58,16 +58,23 @@ class ViewSelectionOptions:
     roll about the axis does not count): dense work then grows with the surveyed
     surface, not with the time spent over it. Every keyframe remains a stereo source.
 
+    The defaults space references about half a footprint apart (0.15 of the scene depth,
+    10 degrees), so a surface lies in two or more reference depth maps: the mesh keeps
+    only points that two maps agree on (`mesh_min_images`). At 0.3 / 20 degrees most
+    surface was in one map only, and a simulated 10-minute dive (1227 keyframes) got 39
+    references and a mesh covering 16 % of the filmed surface at 5 cm; at 0.15 / 10
+    degrees, 130 references and 55 %, for 2.2x the dense time.
+
     enabled: False makes every keyframe a reference.
     min_baseline_rel: distance to the nearest reference, as a fraction of the scene
-        depth, beyond which a keyframe sees enough new surface (0.3 at 2.5 m: 0.75 m).
+        depth, beyond which a keyframe sees enough new surface (0.15 at 2.5 m: 0.38 m).
     min_rotation_deg: turn beyond which a keyframe sees another part of the scene or the
         same surface from another side.
     """
 
     enabled: bool = True
-    min_baseline_rel: float = 0.3
-    min_rotation_deg: float = 20.0
+    min_baseline_rel: float = 0.15
+    min_rotation_deg: float = 10.0
 
 
 def select_reference_views(

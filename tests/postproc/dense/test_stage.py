@@ -70,9 +70,10 @@ def test_outputs_are_close_to_the_truth(dense_dir: Path, coarse_scene: WreckScen
     assert np.mean(d_mesh < 0.05) > 0.97
     report = json.loads((dense_dir / "dense.json").read_text())
     assert report["backend"] == "cpu"
-    # Cameras 0.3 m apart, 2.5-3 m from the hull: one reference every 0.9 m (0.3 x depth).
-    assert report["images"] == 7 and report["reference_images"] == 3
-    assert report["depth_maps"]["computed"] == 3
+    # Cameras 0.3 m apart, 2.5-3 m from the hull: a reference once the nearest one is
+    # 0.15 x depth (0.38-0.45 m) away, i.e. every second camera: 0, 2, 4, 6.
+    assert report["images"] == 7 and report["reference_images"] == 4
+    assert report["depth_maps"]["computed"] == 4
     assert 6 <= report["mesh"]["octree_depth"] <= 11
 
 
@@ -86,7 +87,7 @@ def test_workspace_is_colmaps(dense_dir: Path, sfm: SyntheticSfm) -> None:
     ws = DenseWorkspace(dense_dir / "workspace")
     assert ws.is_undistorted()
     chosen = references(dense_dir)
-    assert chosen == [sfm.names[0], sfm.names[3], sfm.names[6]]
+    assert chosen == [sfm.names[0], sfm.names[2], sfm.names[4], sfm.names[6]]
     for name in sfm.names:
         done = ws.depth_map_path(name).is_file() and ws.normal_map_path(name).is_file()
         assert done == (name in chosen)
@@ -123,22 +124,22 @@ def test_resumes_per_image(dense_dir: Path, sfm: SyntheticSfm, tmp_path: Path) -
     out = tmp_path / "dense"
     shutil.copytree(dense_dir, out)
     ws = DenseWorkspace(out / "workspace")
-    # As if interrupted while computing the depth map of the fourth image.
-    ws.depth_map_path(sfm.names[3]).unlink()
+    # As if interrupted while computing the depth map of the fifth image.
+    ws.depth_map_path(sfm.names[4]).unlink()
     for name in ("fused.ply", "fused.ply.vis", "mesh.ply", "dense.json"):
         (out / name).unlink()
     kept = ws.depth_map_path(sfm.names[0]).stat().st_mtime_ns
     run(quick_options(), sfm.folder, out)
     report = json.loads((out / "dense.json").read_text())
-    assert sfm.names[3] in references(out)
+    assert sfm.names[4] in references(out)
     assert report["depth_maps"]["computed"] == 1
-    assert report["depth_maps"]["skipped"] == report["reference_images"] - 1 == 2
+    assert report["depth_maps"]["skipped"] == report["reference_images"] - 1 == 3
     assert ws.depth_map_path(sfm.names[0]).stat().st_mtime_ns == kept
     assert (out / "mesh.ply").is_file()
     # overwrite redoes everything.
     run(quick_options(make_mesh=False), sfm.folder, out, overwrite=True)
     report = json.loads((out / "dense.json").read_text())
-    assert report["depth_maps"]["computed"] == 3
+    assert report["depth_maps"]["computed"] == 4
     assert not (out / "mesh.ply").exists()
 
 
