@@ -63,7 +63,7 @@ class ViewSelectionOptions:
     only points that two maps agree on (`mesh_min_images`). At 0.3 / 20 degrees most
     surface was in one map only, and a simulated 10-minute dive (1227 keyframes) got 39
     references and a mesh covering 16 % of the filmed surface at 5 cm; at 0.15 / 10
-    degrees, 130 references and 55 %, for 2.2x the dense time.
+    degrees, 130 references and 55 %, for 1.7x the dense time.
 
     enabled: False makes every keyframe a reference.
     min_baseline_rel: distance to the nearest reference, as a fraction of the scene
