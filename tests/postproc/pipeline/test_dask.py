@@ -3,11 +3,7 @@ killed mid-stage; the run completes and its outputs equal a local run's."""
 
 from __future__ import annotations
 
-import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -17,14 +13,7 @@ from postproc.pipeline.dask_backend import DaskBackend, make_backend
 from postproc.pipeline.project import load_project
 from postproc.pipeline.runner import STAMP_NAME, run_project
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parents[2]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from .conftest import loopback_cluster
 
 
 def outputs(root: Path) -> dict[str, bytes]:
@@ -58,50 +47,9 @@ def test_worker_killed_mid_stage_reruns_elsewhere(
     for p in markers.glob("*"):
         p.unlink()
 
-    port = free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(HERE), str(REPO), os.environ.get("PYTHONPATH", "")]),
-        "FAKE_STAGE_SLEEP_S": "2.0",
-        "FAKE_STAGE_MARKERS": str(markers),
-    }
-    logs = tmp_path / "dask-logs"
-    logs.mkdir()
-    procs: list[subprocess.Popen[bytes]] = []
-
-    def start(args: list[str], name: str) -> subprocess.Popen[bytes]:
-        with (logs / f"{name}.log").open("wb") as log_file:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", *args], env=env, stdout=log_file, stderr=subprocess.STDOUT
-            )
-        procs.append(proc)
-        return proc
-
-    try:
-        start(
-            ["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
-             "--dashboard-address", ":0", "--no-show"],
-            "scheduler",
-        )  # fmt: skip
-        workers = [
-            start(
-                [
-                    "distributed.cli.dask_worker",
-                    address,
-                    "--nthreads",
-                    "1",
-                    "--no-nanny",
-                    "--host",
-                    "127.0.0.1",
-                    "--name",
-                    f"w{k}",
-                    "--no-dashboard",
-                ],
-                f"worker{k}",
-            )
-            for k in range(2)
-        ]
+    env = {"FAKE_STAGE_SLEEP_S": "2.0", "FAKE_STAGE_MARKERS": str(markers)}
+    with loopback_cluster(tmp_path / "dask-logs", workers=2, env=env) as cluster:
+        address, workers = cluster.address, cluster.workers
         backend = None
         deadline = time.monotonic() + 60
         while backend is None:
@@ -149,13 +97,3 @@ def test_worker_killed_mid_stage_reruns_elsewhere(
             p for p in remote.output.rglob("*") if "partial" in p.name or p.name.endswith(".tmp")
         ]
         assert leftovers == []
-    finally:
-        for proc in reversed(procs):
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        for proc in procs:
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
