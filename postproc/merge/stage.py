@@ -238,11 +238,7 @@ def run(
         dof = 6
     else:
         dof = 4 if depth_fused else 6
-    tilt_prior_rad = (
-        None
-        if options.tilt_sigma_deg is None or dof == 4
-        else float(np.deg2rad(options.tilt_sigma_deg))
-    )
+    tilt_prior_deg = None if dof == 4 else options.tilt_sigma_deg
     observations = _observe(options, sessions, grids, target_names)
 
     if options.method == "ours":
@@ -255,7 +251,10 @@ def run(
     }
     if options.method == "ours":
         placements = place_sessions(
-            estimates, reference, dof=dof, tilt_prior_sigma_rad=tilt_prior_rad
+            estimates,
+            reference,
+            dof=dof,
+            tilt_prior_sigma_rad=None if tilt_prior_deg is None else np.deg2rad(tilt_prior_deg),
         )
     else:
         placements = _place_paper(estimates, reference)
@@ -299,7 +298,7 @@ def run(
             overwrite=overwrite,
         )
     document = _transforms_document(
-        options, sessions, reference, dof, depth_fused, placements, estimates, tilt_prior_rad
+        options, sessions, reference, dof, depth_fused, placements, estimates, tilt_prior_deg
     )
     write_text_atomic(transforms_path, json.dumps(document, indent=2) + "\n", overwrite=overwrite)
     return transforms_path
@@ -806,7 +805,7 @@ def _transforms_document(
     depth_fused: bool,
     placements: dict[str, Placement],
     estimates: dict[str, dict[str, TargetEstimate]],
-    tilt_prior_rad: float | None,
+    tilt_prior_deg: float | None,
 ) -> dict[str, Any]:
     entries: dict[str, Any] = {}
     for session in sessions:
@@ -860,9 +859,7 @@ def _transforms_document(
         "method": options.method,
         "dof": dof,
         "depth_fused": depth_fused,
-        "tilt_prior_sigma_deg": (
-            None if tilt_prior_rad is None else float(np.rad2deg(tilt_prior_rad))
-        ),
+        "tilt_prior_sigma_deg": tilt_prior_deg,
         "covariance_convention": COVARIANCE_CONVENTION,
         "sessions": entries,
     }
