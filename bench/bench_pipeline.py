@@ -139,6 +139,7 @@ def run_chain(root: Path, sim: Path, *, euroc: bool) -> dict[str, float | str]:
 
     project = load_project(project_file(root, sim, euroc=euroc))
     result = run_project(project, echo=print)
+    describe(project)
     outputs = {t.key: t.out for t in plan(project)[0]}
     per_stage: dict[str, float | str] = {}
     for outcome in result.outcomes:
@@ -153,6 +154,44 @@ def run_chain(root: Path, sim: Path, *, euroc: bool) -> dict[str, float | str]:
         else:
             per_stage[outcome.stage] = outcome.status
     return per_stage
+
+
+def describe(project: object) -> None:
+    """Print what drives the SfM and dense time (keyframes, track length, reference views)
+    and the errors of the outputs against the simulator's truth."""
+    from postproc.pipeline.evaluate import evaluate_project
+
+    out = project.output  # type: ignore[attr-defined]
+    sfm_stats, dense_stats = out / "sfm" / "stats.json", out / "dense" / "dense.json"
+    if sfm_stats.is_file():
+        sfm = json.loads(sfm_stats.read_text())
+        print(
+            f"  sfm: {sfm['keyframes']} keyframes, {sfm['points3D']} points, mean track length "
+            f"{sfm['mean_track_length']:.1f}, {len(sfm['rounds'])} rounds"
+        )
+    if dense_stats.is_file():
+        dense = json.loads(dense_stats.read_text())
+        chosen = f"{dense['reference_images']} of {dense['images']}"
+        print(f"  dense: {chosen} keyframes get a depth map")
+    errors = evaluate_project(project)
+    for name, session in errors.get("sessions", {}).items():
+        print(
+            f"  truth, {name}: slam ATE {100 * session.get('slam_ate_m', math.nan):.1f} cm, "
+            f"depth clock error {1000 * session.get('depth_time_offset_error_s', math.nan):.0f} ms"
+        )
+    for stage in ("merge", "sfm"):
+        if stage in errors:
+            print(f"  truth, {stage}: keyframe position RMS {100 * errors[stage]['rms_m']:.1f} cm")
+    if "dense" in errors:
+        d = errors["dense"]
+        scores = ", ".join(
+            f"{100 * s['accuracy']:.1f} / {100 * s['completeness']:.1f} % at {s['threshold_m']:g} m"
+            for s in d["scores"]
+        )
+        print(
+            f"  truth, mesh: median error {1000 * d['median_distance_m']:.1f} mm; "
+            f"accuracy / completeness {scores} ({d['completeness_basis']})"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
