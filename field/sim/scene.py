@@ -220,11 +220,11 @@ def build_wreck_scene(
     )
     tasks.append((children[-1], shape, "sand", seafloor_texel_m, False))
     if workers > 1:
-        import multiprocessing
+        from shared.forkpool import fork_pool
 
         # Biggest first, so the two workers finish together.
         order = sorted(range(len(tasks)), key=lambda i: -tasks[i][1][0] * tasks[i][1][1])
-        with multiprocessing.get_context("fork").Pool(workers) as pool:
+        with fork_pool(workers) as pool:
             made = pool.map(_face_texture, [tasks[i] for i in order], chunksize=1)
         images: list[npt.NDArray[np.uint8]] = [np.empty(0, np.uint8)] * len(tasks)
         for i, image in zip(order, made, strict=True):

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
@@ -34,6 +33,7 @@ from shared.calibration.cameras import PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, ImuNoise
 from shared.clock import ClockModel
 from shared.errors import OutputExistsError
+from shared.forkpool import fork_pool
 from shared.formats.diveprofile import DiveProfile
 
 FloatArray = npt.NDArray[np.float64]
@@ -507,8 +507,7 @@ def _rendered_frames(sim: SurveySimulator, session: int, workers: int, bar: Any)
     # fork shares the scene's textures and the renderer's tables with the workers without
     # copying them, so build everything before the pool starts.
     sim.renderer.prepare()
-    context = multiprocessing.get_context("fork")
-    with context.Pool(workers) as pool:
+    with fork_pool(workers) as pool:
         for task, images in zip(tasks, pool.imap(_render_task, tasks, chunksize=4), strict=True):
             bar.update(1)
             yield (task[2], *images)
