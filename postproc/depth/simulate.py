@@ -56,13 +56,31 @@ def _smooth(x: FloatArray, sigma_samples: float) -> FloatArray:
 
 
 def _dive_depth(
-    rng: np.random.Generator, t: FloatArray, *, flat: bool, surface_break: bool
+    rng: np.random.Generator,
+    t: FloatArray,
+    *,
+    flat: bool,
+    surface_break: bool,
+    bottom_range_m: float | None = None,
 ) -> FloatArray:
-    """True depth (m) on a 1 s grid t (seconds from the dive start)."""
+    """True depth (m) on a 1 s grid t (seconds from the dive start).
+
+    `bottom_range_m`: the bottom phase wanders over this many metres (peak to
+    peak of the slow changes; the finning bobs come on top) instead of 6-18 m.
+    """
     total = t[-1]
     bottom_start, bottom_end = 120.0, total - 420.0
     if flat:
         bottom = np.full_like(t, 12.0)
+    elif bottom_range_m is not None:
+        # A diver holding one depth along a wreck's deck: slow changes of a metre or so.
+        wander = np.zeros_like(t)
+        for _ in range(4):
+            period = rng.uniform(90.0, 600.0)
+            wander += rng.uniform(0.5, 1.0) * np.sin(2 * np.pi * t / period + rng.uniform(0, 6.3))
+        during = (t >= bottom_start) & (t <= bottom_end)
+        low, high = float(wander[during].min()), float(wander[during].max())
+        bottom = rng.uniform(10.0, 13.0) + bottom_range_m * (wander - low) / (high - low)
     else:
         bottom = np.full_like(t, rng.uniform(10.0, 13.0))
         for _ in range(6):
@@ -107,15 +125,26 @@ def simulate_dive(
     earlier_dives: int = 0,
     surface_break: bool = False,
     flat: bool = False,
+    bottom_range_m: float | None = None,
+    vio_z_drift_per_m: float = 0.0,
+    vio_z_wobble_m: float = 0.0,
 ) -> SyntheticDive:
     """Simulate one dive (plus `earlier_dives` on the same day, 1 h surface intervals).
 
     `trajectory_start_s` is when the camera trajectory starts after the dive
     start (seconds); the camera clock reads CAMERA_EPOCH_S at the dive start.
+    `flat`: the bottom phase at exactly 12 m (nothing to sync on);
+    `bottom_range_m`: the bottom phase wanders over this many metres only.
+    VIO z error, besides the random walk `vio_z_drift_m_per_sqrt_s`: a steady
+    drift of `vio_z_drift_per_m` metres per metre swum (up or down at random;
+    0.004 is the 0.4 % of the distance a good VIO drifts) and a smooth wobble of
+    `vio_z_wobble_m` RMS (Gaussian-correlated over about 10 s).
     """
     rng = np.random.default_rng(seed)
     t_dive = np.arange(0.0, dive_duration_s + 1.0, 1.0)
-    depth_true = _dive_depth(rng, t_dive, flat=flat, surface_break=surface_break)
+    depth_true = _dive_depth(
+        rng, t_dive, flat=flat, surface_break=surface_break, bottom_range_m=bottom_range_m
+    )
 
     # Camera trajectory (camera clock, absolute seconds).
     n = round(trajectory_duration_s * rate_hz) + 1
@@ -141,6 +170,13 @@ def simulate_dive(
         steps = rng.normal(0.0, vio_z_drift_m_per_sqrt_s / np.sqrt(rate_hz), n)
         steps[0] = 0.0
         positions[:, 2] += np.cumsum(steps)
+    if vio_z_drift_per_m > 0.0:
+        travelled_m = speed * (rel - rel[0])
+        positions[:, 2] += rng.choice([-1.0, 1.0]) * vio_z_drift_per_m * travelled_m
+    if vio_z_wobble_m > 0.0:
+        wobble = _smooth(rng.normal(0.0, 1.0, n), 10.0 * rate_hz)
+        wobble -= wobble[0]
+        positions[:, 2] += vio_z_wobble_m * wobble / max(float(np.std(wobble)), 1e-12)
     vio = Trajectory(stamps_ns, make_pose(np.swapaxes(R0, 0, 1)[None] @ R, positions))
 
     # Dive computer: samples every interval on its own clock.
@@ -159,7 +195,9 @@ def simulate_dive(
         inside = (u >= start_cam) & (u <= start_cam + dive_duration_s)
         v, u = v[inside], u[inside]
         if k < earlier_dives:
-            other = _dive_depth(rng, t_dive, flat=flat, surface_break=False)
+            other = _dive_depth(
+                rng, t_dive, flat=flat, surface_break=False, bottom_range_m=bottom_range_m
+            )
             d = np.interp(u - start_cam, t_dive, other)
         else:
             d = np.interp(u - start_cam, t_dive, depth_true)
