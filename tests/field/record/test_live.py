@@ -77,6 +77,48 @@ def test_record_stops_cleanly_on_signal(
         assert topics["/cam0/video"].message_count == pytest.approx(15 * span_s, abs=2)
 
 
+def test_record_from_a_cold_cache_starts_and_stops_on_sigterm(tmp_path: Path, tools: Any) -> None:
+    """The way a user starts it: no rendered clip yet, so the recorder builds the scene
+    (a forked pool) after its SIGTERM handler is installed. It used to hang for good in
+    `Pool.terminate` because the workers inherited that handler."""
+    from tests.field.record.conftest import SMALL_SIM
+
+    out = tmp_path / "dive"
+    env = {**tools.env(), "WRECKMAP_CACHE": str(tmp_path / "empty-cache")}
+    proc = subprocess.Popen(
+        tools.cli(
+            "record",
+            "--source",
+            "sim",
+            "--out",
+            str(out),
+            "--duration",
+            "30",
+            *tools.sim_args(SMALL_SIM),
+        ),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    part = out / "recording_000.mcap.part"
+    try:
+        # A hang guard, many times the normal start (a few seconds to render the clip).
+        _wait_for(lambda: part.exists() or proc.poll() is not None, 240, "the first archive")
+        assert proc.poll() is None, proc.communicate()[1]
+        assert list((tmp_path / "empty-cache").glob("sim-clip-*.mcap"))
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, stderr
+    assert "stopped: signal SIGTERM" in stdout
+    assert (out / "recording_000.mcap").is_file() and not part.exists()
+
+
 def _kill_trial(
     tools: Any, sim_options: dict[str, Any], out: Path, delay_s: float
 ) -> dict[str, Any]:
