@@ -29,8 +29,11 @@ _NS_PER_S = 1_000_000_000
 _MAX_STAMP_S = Decimal(2**63) / _NS_PER_S
 
 
-def _parse_stamp_ns(text: str) -> int:
-    """Decimal seconds (any precision, exponent allowed) to int ns, rounded half to even."""
+def parse_stamp_ns(text: str) -> int:
+    """Decimal seconds (any precision, exponent allowed) to int ns, rounded half to even.
+
+    Raises ValueError (or decimal.InvalidOperation for text that is not a number).
+    """
     value = Decimal(text)  # exact decimal of the digits, no float on the way
     if not value.is_finite():
         raise ValueError(f"non-finite timestamp {text!r}")
@@ -76,7 +79,7 @@ def read_tum(path: Path | str) -> Trajectory:
         if len(fields) != 8:
             raise InputError(f"{where}: expected 8 numbers ({_FIELDS}), found {len(fields)}")
         try:
-            stamp_ns = _parse_stamp_ns(fields[0])
+            stamp_ns = parse_stamp_ns(fields[0])
             values = [float(f) for f in fields[1:]]
         except (ValueError, InvalidOperation) as exc:
             raise InputError(f"{where}: expected 8 numbers ({_FIELDS}), found {line!r}") from exc
@@ -90,7 +93,8 @@ def read_tum(path: Path | str) -> Trajectory:
         if stamps and stamp_ns <= stamps[-1]:
             raise InputError(
                 f"{where}: timestamp {fields[0]} is not after the previous line's "
-                f"(expected strictly increasing time stamps)"
+                f"(expected strictly increasing time stamps; an SVIn2 file, whose "
+                f"nanoseconds are not zero-padded, is read by shared.formats.svin)"
             )
         stamps.append(stamp_ns)
         rows.append(values)
