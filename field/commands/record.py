@@ -15,8 +15,13 @@ example:
 
 Writes SESSION_DIR/session.yaml, recording_NNN.mcap (rotated by size/time) and calib/.
 Stop with Ctrl-C or SIGTERM: the files are closed and indexed. After a crash run
-`wreckmap-field recover SESSION_DIR`.
+`wreckmap-field recover SESSION_DIR`. Below --min-free-mb of free disk (default 200 MiB)
+the recording stops cleanly. Exit status: 0 stopped as asked, 2 the last file could not
+be closed (recover it), 3 stopped because the disk is (nearly) full, files closed.
 """
+
+EXIT_NOT_CLOSED = 2
+EXIT_DISK_FULL = 3
 
 RECOVER_EXAMPLE = """\
 example:
@@ -78,6 +83,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--preview-lan",
         metavar="ADDRESS",
         help="also listen for preview clients on this LAN address (same port as --preview)",
+    )
+    record.add_argument(
+        "--min-free-mb",
+        type=float,
+        metavar="MIB",
+        help="stop cleanly when the disk has less free space than this (MiB; default 200, "
+        "0 turns the watermark off)",
     )
     record.add_argument("--rig", help="rig name (preview keys wreckmap/RIG/SESSION/...)")
     record.add_argument(
@@ -187,6 +199,10 @@ def _record(args: argparse.Namespace) -> int:
         recorder_values["duration_s"] = args.duration
     if args.rig:
         recorder_values["rig"] = args.rig
+    if args.min_free_mb is not None:
+        if args.min_free_mb < 0:
+            raise InputError(f"--min-free-mb {args.min_free_mb}: expected MiB >= 0 (0: off)")
+        recorder_values["min_free_mb"] = args.min_free_mb
     options = build_options(RecorderOptions, recorder_values, "recorder")
 
     preview = None
@@ -230,7 +246,10 @@ def _record(args: argparse.Namespace) -> int:
         print(f"  {topic}: {count}{extra}")
     if not report.clean:
         print("the last file was not closed: run `wreckmap-field recover` on its .part")
-        return 2
+        return EXIT_NOT_CLOSED
+    if report.stop_reason.startswith("disk"):
+        print(f"{report.session_dir}: the disk is full; every file is closed, make room to go on")
+        return EXIT_DISK_FULL
     return 0
 
 

@@ -285,7 +285,30 @@ class Recorder:
             self._write_session_yaml(final=True, report=report)
         except OSError as error:
             log.error("session.yaml not updated: %s", error)
+        self._publish_final_health(report)
         return report
+
+    def _publish_final_health(self, report: RecordReport) -> None:
+        """One last health message saying the recording stopped, why, and if cleanly
+        (the preview page shows it: a full disk must not look like a live recorder)."""
+        with self._stats_lock:
+            events = self._events[-5:]
+        self._health = {
+            **self._health,
+            "t_ns": time.time_ns(),
+            "session": self.session_id,
+            "rig": self.options.rig,
+            "state": "stopped",
+            "stop_reason": report.stop_reason,
+            "clean": report.clean,
+            "files": len(report.files),
+            "events": events,
+        }
+        if self.preview is not None:
+            try:
+                self.preview.publish_health(self._health)
+            except Exception as error:  # the preview is best effort; the files are done
+                log.warning("preview: last health not published (%s)", error)
 
     def _check_session_dir(self) -> None:
         if not self.session_dir.exists() or self.overwrite:
@@ -489,6 +512,7 @@ class Recorder:
             "topics": topics,
             "sources": {name: ("up" if up else "down") for name, up in self._source_up.items()},
             "events": events,
+            "state": "recording",
         }
         if self.preview is not None:
             self.preview.publish_health(self._health)

@@ -91,6 +91,12 @@ function onHealth(hl) {
     "), disk free " + freeMiB.toFixed(0) + " MiB, queue " + hl.queue_items + ", up " + hl.uptime_s + " s, sources " +
     Object.entries(hl.sources).map(([k, v]) => k + " " + v).join(", ");
   line.className = freeMiB < 1024 || Object.values(hl.sources).includes("down") ? "bad" : "";
+  if (hl.state === "stopped") {
+    // The recorder's last word: why it stopped, and whether its files were closed.
+    line.textContent = "recording stopped: " + hl.stop_reason +
+      (hl.clean ? " (files closed cleanly)" : " (last file needs wreckmap-field recover)") + "; " + line.textContent;
+    line.className = hl.stop_reason.startsWith("disk") || !hl.clean ? "bad" : "";
+  }
   const body = el("topics").querySelector("tbody");
   body.replaceChildren();
   for (const [topic, s] of Object.entries(hl.topics)) {

@@ -241,6 +241,31 @@ def test_disk_nearly_full_stops_cleanly(tmp_path: Path) -> None:
         assert reader.indexed
 
 
+class HealthSink:
+    """A preview sink that keeps every health message."""
+
+    def __init__(self) -> None:
+        self.health: list[dict[str, Any]] = []
+
+    def offer(self, sample: SourceSample) -> None:
+        pass
+
+    def publish_health(self, health: dict[str, Any]) -> None:
+        self.health.append(dict(health))
+
+
+def test_preview_is_told_why_the_recording_stopped(tmp_path: Path) -> None:
+    sink = HealthSink()
+    options = _options(duration_s=5.0, min_free_mb=1e12)
+    report = Recorder(options, [FakeSource()], tmp_path / "s", preview=sink).run()
+    assert report.stop_reason == "disk nearly full"
+    assert sink.health[0]["state"] == "recording"
+    last = sink.health[-1]
+    assert last["state"] == "stopped" and last["stop_reason"] == "disk nearly full"
+    assert last["clean"] is True
+    assert any("disk nearly full" in e for e in last["events"])
+
+
 class FailingWriter(ArchiveWriter):
     """An ArchiveWriter whose disk fills up after a few flushes (fault injection)."""
 
