@@ -1,12 +1,29 @@
-"""What the logbook importers share: safe XML parsing and building a DiveProfile."""
+"""What the logbook importers share: safe XML, the spellings logbooks use, building profiles.
+
+The spellings follow what Subsurface's own reader (core/parse-xml.cpp) accepts, since
+Subsurface writes most of the XML logbooks in the wild and reads back what it wrote:
+
+* dates `2014-4-1` or `1.4.2014` (no zero padding), optionally followed by a time;
+* times `10:0:0` or `10:00` (seconds optional);
+* sample times `12:34 min`, `1:02:03` or plain seconds `754`;
+* numbers with a unit after them (`12.3 m`, `15.0 C`, `1.013 bar`) and a decimal comma;
+* temperatures outside -40..+70 degC are no reading (Subsurface drops them too).
+
+One odd sample is skipped with a warning; one odd dive is skipped with a warning that
+names it; only a file with nothing importable is refused, in one line naming the file.
+"""
 
 from __future__ import annotations
 
 import hashlib
 import itertools
+import logging
 import math
+import re
 from collections import Counter
 from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +31,13 @@ import numpy as np
 
 from shared.errors import InputError
 from shared.formats.diveprofile import DiveProfile, iso_to_stamp_s, stamp_s_to_iso
+
+log = logging.getLogger("field.divecomputer.importers")
+
+FEET_TO_M = 0.3048
+# Subsurface ignores water temperatures outside this band (sensor garbage, unit mix-ups).
+MIN_TEMPERATURE_C = -40.0
+MAX_TEMPERATURE_C = 70.0
 
 
 def parse_xml(path: Path) -> Any:
@@ -45,6 +69,264 @@ def local_name(tag: Any) -> str:
     """Tag without its `{namespace}` (UDDF files come with and without one)."""
     text = str(tag)
     return text.rsplit("}", 1)[-1]
+
+
+def children(element: Any, name: str) -> list[Any]:
+    """Direct children called `name` (any namespace, any letter case)."""
+    wanted = name.lower()
+    return [child for child in element if local_name(child.tag).lower() == wanted]
+
+
+def descendants(element: Any, name: str) -> list[Any]:
+    """Every element called `name` below `element` (any namespace, any letter case)."""
+    wanted = name.lower()
+    return [
+        child
+        for child in element.iter()
+        if child is not element and local_name(child.tag).lower() == wanted
+    ]
+
+
+def field_text(element: Any, name: str) -> str | None:
+    """The value `name` of `element`: an attribute, else a child element's text.
+
+    Subsurface matches both spellings (`<sample time='1:00 min'/>` and
+    `<sample><time>1:00 min</time></sample>`) and ignores letter case.
+    """
+    wanted = name.lower()
+    for key, value in element.attrib.items():
+        if local_name(key).lower() == wanted:
+            return str(value).strip()
+    for child in children(element, name):
+        if child.text is not None and child.text.strip():
+            return str(child.text).strip()
+    return None
+
+
+# ----------------------------------------------------------------------------- spellings
+
+_QUANTITY = re.compile(
+    r"^\s*([-+]?(?:\d+(?:[.,]\d*)?|[.,]\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z°%/]*)\s*$"
+)
+
+
+def parse_quantity(text: str) -> tuple[float, str]:
+    """'12.3 m' -> (12.3, 'm'); '15,5 C' -> (15.5, 'c'); raises ValueError otherwise.
+
+    The unit comes back in lower case without a degree sign; '' when there is none.
+    """
+    match = _QUANTITY.match(text)
+    if match is None:
+        raise ValueError(f"{text[:40]!r} is not a number with a unit")
+    value = float(match.group(1).replace(",", "."))
+    return value, match.group(2).lower().lstrip("°")
+
+
+def depth_m_from_text(text: str) -> float:
+    """A depth in metres from '12.3 m', '40 ft' or a bare number (metres)."""
+    value, unit = parse_quantity(text)
+    if unit in ("", "m"):
+        depth = value
+    elif unit in ("ft", "feet"):
+        depth = value * FEET_TO_M
+    else:
+        raise ValueError(f"depth unit {unit!r} in {text[:40]!r} (expected m or ft)")
+    if not math.isfinite(depth):
+        raise ValueError(f"depth {text[:40]!r} is not a finite number")
+    return depth
+
+
+def temperature_c_from_text(text: str, *, bare_unit: str = "c") -> float:
+    """A water temperature in degC from '15.0 C', '59 F', '288.15 K'; NaN when implausible.
+
+    `bare_unit` is the unit of a number without one ('c' in Subsurface XML, 'k' in UDDF).
+    """
+    value, unit = parse_quantity(text)
+    unit = unit or bare_unit
+    if unit == "c":
+        celsius = value
+    elif unit == "f":
+        celsius = (value - 32.0) * 5.0 / 9.0
+    elif unit == "k":
+        celsius = kelvin_to_c(value)
+    else:
+        raise ValueError(f"temperature unit {unit!r} in {text[:40]!r} (expected C, F or K)")
+    if not MIN_TEMPERATURE_C <= celsius <= MAX_TEMPERATURE_C:  # NaN fails too
+        return math.nan
+    return celsius
+
+
+def kelvin_to_c(kelvin: float) -> float:
+    """Kelvin to degC through millikelvin, as Subsurface does (283.15 K is exactly 10.0)."""
+    if not math.isfinite(kelvin):  # NaN stays NaN; round() cannot take an infinity
+        return kelvin if math.isnan(kelvin) else kelvin - 273.15
+    return (round(kelvin * 1000.0) - 273_150) / 1000.0
+
+
+_CLOCK = re.compile(r"^\s*(\d+)\s*:\s*(\d+)(?:\s*:\s*(\d+(?:[.,]\d*)?))?")
+
+
+def duration_s_from_text(text: str) -> float:
+    """'12:34 min', '1:02:03', '754 s', '754' -> seconds (a bare number is seconds).
+
+    A bare number with a 'min' unit ('30 min') is minutes; Subsurface itself always
+    writes 'm:ss min'.
+    """
+    body = text.strip()
+    if ":" in body:
+        parts = body.split()[0].replace(",", ".").split(":")
+        try:
+            numbers = [float(part) for part in parts]
+        except ValueError:
+            raise ValueError(f"time {text[:40]!r} is not mm:ss") from None
+        if len(numbers) > 3 or any(n < 0 or not math.isfinite(n) for n in numbers):
+            raise ValueError(f"time {text[:40]!r} is not mm:ss or h:mm:ss")
+        seconds = 0.0
+        for number in numbers:
+            seconds = seconds * 60.0 + number
+        return seconds
+    try:
+        value, unit = parse_quantity(body)
+    except ValueError:
+        raise ValueError(f"time {text[:40]!r} is not mm:ss or seconds") from None
+    scale = {"": 1.0, "s": 1.0, "sec": 1.0, "min": 60.0, "h": 3600.0}.get(unit)
+    if scale is None or not math.isfinite(value):
+        raise ValueError(f"time {text[:40]!r} is not mm:ss or seconds")
+    return value * scale
+
+
+_DATE_YMD = re.compile(r"^\s*(\d{1,4})-(\d{1,2})-(\d{1,2})")
+_DATE_DMY = re.compile(r"^\s*(\d{1,2})\.(\d{1,2})\.(\d{1,4})")
+_COMPACT = re.compile(r"^\s*(\d{4})(\d{2})(\d{2})(?:[T ](\d{2})(\d{2})(\d{2})?)?")
+
+
+@dataclass(frozen=True)
+class WallClock:
+    """A wall-clock moment as a logbook spells it (no zone)."""
+
+    year: int
+    month: int
+    day: int
+    hour: int = 0
+    minute: int = 0
+    second: float = 0.0
+
+    def iso(self) -> str:
+        """ISO 8601 with no zone; raises ValueError for an impossible date or time."""
+        whole = int(self.second)
+        moment = datetime(self.year, self.month, self.day, self.hour, self.minute, whole)
+        microseconds = round((self.second - whole) * 1e6)
+        if microseconds:
+            return moment.replace(microsecond=min(microseconds, 999_999)).isoformat()
+        return moment.isoformat(timespec="seconds")
+
+
+def _time_of_day(text: str) -> tuple[int, int, float] | None:
+    match = _CLOCK.match(text)
+    if match is None:
+        return None
+    second = float((match.group(3) or "0").replace(",", "."))
+    return int(match.group(1)), int(match.group(2)), second
+
+
+def parse_logbook_date(text: str) -> WallClock:
+    """'2014-4-1', '2014-04-01 10:0:0', '1.4.2014', '20140401T100000' -> WallClock.
+
+    A time after the date (space or 'T' between) is kept; a zone after it is ignored
+    (dive computers keep local wall-clock time).
+    """
+    body = text.strip()
+    for pattern, order in ((_DATE_YMD, "ymd"), (_DATE_DMY, "dmy")):
+        match = pattern.match(body)
+        if match is None:
+            continue
+        numbers = dict(zip(order, (int(g) for g in match.groups()), strict=True))
+        rest = body[match.end() :].lstrip("T ")
+        clock = _time_of_day(rest) if rest else None
+        hour, minute, second = clock or (0, 0, 0.0)
+        return WallClock(numbers["y"], numbers["m"], numbers["d"], hour, minute, second)
+    match = _COMPACT.match(body)
+    if match is not None:
+        y, m, d, hh, mm, ss = match.groups()
+        return WallClock(int(y), int(m), int(d), int(hh or 0), int(mm or 0), float(ss or 0))
+    raise ValueError(f"date {text[:40]!r} is not y-m-d or d.m.y")
+
+
+def combine_date_time(date_text: str, time_text: str | None) -> str:
+    """ISO 8601 start from a logbook's date and (optional) time fields."""
+    moment = parse_logbook_date(date_text)
+    if time_text is not None:
+        clock = _time_of_day(time_text)
+        if clock is None:
+            raise ValueError(f"time {time_text[:40]!r} is not h:m[:s]")
+        moment = WallClock(moment.year, moment.month, moment.day, *clock)
+    try:
+        return moment.iso()
+    except (ValueError, OverflowError) as error:
+        raise ValueError(
+            f"no such date or time {date_text[:40]!r} {time_text or ''} ({error})"
+        ) from None
+
+
+# ----------------------------------------------------------------------------- collecting
+
+
+@dataclass
+class SampleProblems:
+    """Samples of one dive that were skipped, for one warning per dive."""
+
+    count: int = 0
+    first: str = ""
+
+    def add(self, where: str, reason: str) -> None:
+        """Count one skipped sample; the first reason is kept for the warning."""
+        if self.count == 0:
+            self.first = f"{where}: {reason}"
+        self.count += 1
+
+
+@dataclass
+class LogbookReading:
+    """Dives read from one logbook file, and the dives skipped on the way (with why)."""
+
+    path: Path
+    profiles: list[DiveProfile] = field(default_factory=list)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+
+    def skip(self, where: str, reason: str) -> None:
+        """Skip one dive with a warning that names it; the file's other dives go on."""
+        log.warning("%s: skipped (%s)", where, reason)
+        self.skipped.append((where, reason))
+
+    def skip_unreadable(self, where: str, problems: SampleProblems) -> None:
+        """Skip a dive with no sample at all, or none that could be read."""
+        if problems.count:
+            self.skip(where, f"no readable sample; first: {problems.first}")
+        else:
+            self.skip(where, "no samples")
+
+    def warn_samples(self, where: str, problems: SampleProblems) -> None:
+        """One warning for the samples of a dive that could not be read."""
+        if problems.count:
+            log.warning(
+                "%s: %d sample%s skipped (first: %s)",
+                where,
+                problems.count,
+                "" if problems.count == 1 else "s",
+                problems.first,
+            )
+
+    def result(self, *, none_found: str) -> list[DiveProfile]:
+        """The dives, or an InputError when the file had nothing importable."""
+        if self.profiles:
+            return self.profiles
+        if self.skipped:
+            where, reason = self.skipped[0]
+            where = where.removeprefix(f"{self.path}: ")
+            others = len(self.skipped) - 1
+            more = f"; {others} more dive{'s' if others > 1 else ''} skipped" if others else ""
+            raise InputError(f"{self.path}: no importable dive ({where}: {reason}{more})")
+        raise InputError(f"{self.path}: {none_found}")
 
 
 def regular_interval_s(stamps_s: Sequence[float]) -> float | None:
@@ -102,10 +384,3 @@ def make_profile(
         source=source,
         sample_interval_s=regular_interval_s([float(o) for o in offsets]),
     )
-
-
-def kelvin_to_c(kelvin: float) -> float:
-    # UDDF stores kelvin; go through millikelvin as Subsurface does, so 283.15 K is 10.0.
-    if not math.isfinite(kelvin):  # NaN stays NaN; round() cannot take an infinity
-        return kelvin if math.isnan(kelvin) else kelvin - 273.15
-    return (round(kelvin * 1000.0) - 273_150) / 1000.0

@@ -12,7 +12,12 @@ import math
 from datetime import datetime
 from pathlib import Path
 
-from field.divecomputer.importers.common import make_profile, start_fingerprint
+from field.divecomputer.importers.common import (
+    SampleProblems,
+    log,
+    make_profile,
+    start_fingerprint,
+)
 from shared.errors import InputError
 from shared.formats.diveprofile import DiveProfile
 
@@ -91,18 +96,34 @@ def read_shearwater_csv(path: Path) -> list[DiveProfile]:
     imperial_temp = temp_unit == "f" or (temp_unit == "" and imperial_flag)
     start_iso = _parse_date(summary.get("Start Date", ""), f"{path}:2")
     offsets, depths, temps = [], [], []
+    problems = SampleProblems()
     for line_no, row in enumerate(rows[3:], start=4):
         if not any(cell.strip() for cell in row):
             continue
         where = f"{path}:{line_no}"
-        offset = _cell(row, time_index, where)
-        if math.isnan(offset):
-            raise InputError(f"{where}: sample without a time")
-        depth = _cell(row, depth_index, where)
-        temp = _cell(row, temp_index, where)
+        try:  # one odd line is skipped (with one warning for the file), not the dive
+            offset = _cell(row, time_index, where)
+            if math.isnan(offset):
+                raise InputError(f"{where}: sample without a time")
+            depth = _cell(row, depth_index, where)
+            temp = _cell(row, temp_index, where)
+        except InputError as error:
+            problems.add(f"line {line_no}", str(error).removeprefix(f"{where}: "))
+            continue
         offsets.append(offset)
         depths.append(depth * FEET_TO_M if imperial_depth else depth)
         temps.append((temp - 32.0) * 5.0 / 9.0 if imperial_temp else temp)
+    if problems.count:
+        log.warning(
+            "%s: %d sample line%s skipped (first: %s)",
+            path,
+            problems.count,
+            "" if problems.count == 1 else "s",
+            problems.first,
+        )
+    if not offsets:
+        detail = f" ({problems.first})" if problems.count else ""
+        raise InputError(f"{path}: no readable sample line{detail}")
     product = summary.get("Product", "")
     return [
         make_profile(

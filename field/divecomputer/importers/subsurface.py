@@ -1,115 +1,136 @@
-"""Subsurface XML logbooks (.xml, .ssrf): every divecomputer entry of every dive."""
+"""Subsurface XML logbooks (.xml, .ssrf): every divecomputer entry of every dive.
+
+Read as Subsurface reads its own files (core/parse-xml.cpp): `<divelog>` (or the
+`<dives>` root of the first versions) holding `<dives>`, `<trip>` and `<dive>` at any
+nesting; a value is an attribute or a child element of that name, in any letter case;
+the start is the dive's (or its divecomputer's) `date` and `time`, or `datetime`; the
+samples are `<sample time depth temp>` inside each `<divecomputer>`, or inside `<dive>`
+in files older than divecomputers. Dates come unpadded (`2014-4-1`, `10:0:0`); values
+carry their unit (`12.3 m`, `40 ft`, `15.0 C`, `59 F`, `288.15 K`).
+
+A dive without a date or without samples is skipped with a warning; a sample that
+cannot be read is skipped with one warning per dive.
+"""
 
 from __future__ import annotations
 
-import math
-import re
 from pathlib import Path
 from typing import Any
 
 from field.divecomputer.importers.common import (
-    kelvin_to_c,
+    LogbookReading,
+    SampleProblems,
+    children,
+    combine_date_time,
+    depth_m_from_text,
+    descendants,
+    duration_s_from_text,
+    field_text,
     local_name,
     make_profile,
     parse_xml,
+    temperature_c_from_text,
 )
 from shared.errors import InputError
 from shared.formats.diveprofile import DiveProfile
 
-FEET_TO_M = 0.3048
-_NUMBER = re.compile(r"^\s*([-+]?\d+(?:\.\d*)?|[-+]?\.\d+)\s*([A-Za-z°]*)\s*$")
+ROOTS = ("divelog", "dives")
 
 
-def _quantity(text: str | None, where: str) -> tuple[float, str]:
-    if text is None:
-        return math.nan, ""
-    match = _NUMBER.match(text)
-    if match is None:
-        raise InputError(f"{where}: {text!r} is not a number with a unit")
-    return float(match.group(1)), match.group(2).lower()
+def _start_iso(element: Any, inherited: str | None) -> str | None:
+    """The start written on `element` (date + time, or datetime), else `inherited`.
+
+    Raises ValueError when a date is written but cannot be read.
+    """
+    combined = field_text(element, "datetime")
+    date = field_text(element, "date")
+    time = field_text(element, "time")
+    if date is not None:
+        return combine_date_time(date, time)
+    if combined is not None:
+        return combine_date_time(combined, None)
+    if time is not None and inherited is not None:
+        return combine_date_time(inherited.split("T")[0], time)
+    return inherited
 
 
-def _depth_m(text: str | None, where: str) -> float:
-    value, unit = _quantity(text, where)
-    if unit in ("", "m"):
-        return value
-    if unit == "ft":
-        return value * FEET_TO_M
-    raise InputError(f"{where}: depth unit {unit!r} (expected m or ft)")
+def _samples(
+    computer: Any, where: str, problems: SampleProblems
+) -> tuple[list[float], list[float], list[float]]:
+    offsets: list[float] = []
+    depths: list[float] = []
+    temps: list[float] = []
+    for number, sample in enumerate(children(computer, "sample"), start=1):
+        time_text = field_text(sample, "time") or field_text(sample, "sampletime")
+        sample_where = f"sample at {time_text}" if time_text else f"sample {number}"
+        try:
+            if time_text is None:
+                raise ValueError("no time (a sample without a time)")
+            offset = duration_s_from_text(time_text)
+            depth_text = field_text(sample, "depth")
+            depth = float("nan") if depth_text is None else depth_m_from_text(depth_text)
+            temp_text = field_text(sample, "temp") or field_text(sample, "temperature")
+            temp = float("nan") if temp_text is None else temperature_c_from_text(temp_text)
+        except ValueError as error:
+            problems.add(sample_where, str(error))
+            continue
+        offsets.append(offset)
+        depths.append(depth)
+        temps.append(temp)
+    return offsets, depths, temps
 
 
-def _temperature_c(text: str | None, where: str) -> float:
-    value, unit = _quantity(text, where)
-    if unit in ("", "c", "°c"):
-        return value
-    if unit in ("f", "°f"):
-        return (value - 32.0) * 5.0 / 9.0
-    if unit == "k":
-        return kelvin_to_c(value)
-    raise InputError(f"{where}: temperature unit {unit!r} (expected C, F or K)")
-
-
-def _time_s(text: str | None, where: str) -> float:
-    """'12:34 min', '1:02:03', '754 s', '754' -> seconds."""
-    if text is None:
-        raise InputError(f"{where}: sample without a time")
-    body = text.strip()
-    for suffix in (" min", "min", " s", "s"):
-        if body.endswith(suffix):
-            body = body[: -len(suffix)].strip()
-            break
-    try:
-        parts = [float(part) for part in body.split(":")]
-    except ValueError:
-        raise InputError(f"{where}: time {text!r} is not mm:ss") from None
-    if len(parts) == 1:
-        return parts[0] * (60.0 if text.strip().endswith("min") else 1.0)
-    seconds = 0.0
-    for part in parts:
-        seconds = seconds * 60.0 + part
-    return seconds
-
-
-def _start(element: Any, fallback: tuple[str | None, str | None]) -> tuple[str | None, str | None]:
-    date = element.get("date") or fallback[0]
-    time = element.get("time") or fallback[1]
-    return date, time
+def _serials(root: Any) -> dict[tuple[str, str], str]:
+    """(model, deviceid) -> serial from the <settings><divecomputerid> entries."""
+    serials: dict[tuple[str, str], str] = {}
+    for device in descendants(root, "divecomputerid"):
+        model = field_text(device, "model") or ""
+        deviceid = (field_text(device, "deviceid") or "").lower()
+        serials[(model, deviceid)] = field_text(device, "serial") or ""
+    return serials
 
 
 def read_subsurface(path: Path) -> list[DiveProfile]:
     """Every divecomputer of every dive, in file order (trips included)."""
     root = parse_xml(path).getroot()
-    if local_name(root.tag) != "divelog":
+    if local_name(root.tag).lower() not in ROOTS:
         raise InputError(
             f"{path}: root element <{local_name(root.tag)}> (expected Subsurface's <divelog>)"
         )
-    serials: dict[tuple[str, str], str] = {}
-    for device in root.iter("divecomputerid"):
-        serials[(device.get("model", ""), device.get("deviceid", ""))] = device.get("serial", "")
-    profiles = []
-    for dive_index, dive in enumerate(root.iter("dive"), start=1):
-        where_dive = f"{path}: dive {dive.get('number', dive_index)}"
-        computers = dive.findall("divecomputer") or [dive]  # very old files: samples in <dive>
-        for dc_index, computer in enumerate(computers, start=1):
-            where = f"{where_dive} divecomputer {dc_index}"
-            date, time = _start(computer, _start(dive, (None, None)))
-            if date is None:
-                raise InputError(f"{where}: no date")
-            start_iso = f"{date}T{time or '00:00:00'}"
-            offsets, depths, temps = [], [], []
-            for sample in computer.findall("sample"):
-                sample_where = f"{where} sample at {sample.get('time')}"
-                offsets.append(_time_s(sample.get("time"), sample_where))
-                depths.append(_depth_m(sample.get("depth"), sample_where))
-                temps.append(_temperature_c(sample.get("temp"), sample_where))
-            model = computer.get("model", "")
+    serials = _serials(root)
+    reading = LogbookReading(path)
+    for dive_index, dive in enumerate(descendants(root, "dive"), start=1):
+        where_dive = f"{path}: dive {field_text(dive, 'number') or dive_index}"
+        try:
+            dive_start = _start_iso(dive, None)
+        except ValueError as error:
+            reading.skip(where_dive, str(error))
+            continue
+        computers = children(dive, "divecomputer")
+        for dc_index, computer in enumerate(computers or [dive], start=1):
+            where = f"{where_dive} divecomputer {dc_index}" if computers else where_dive
+            try:
+                start_iso = dive_start if computer is dive else _start_iso(computer, dive_start)
+            except ValueError as error:
+                reading.skip(where, str(error))
+                continue
+            if start_iso is None:
+                reading.skip(where, "no date")
+                continue
+            problems = SampleProblems()
+            offsets, depths, temps = _samples(computer, where, problems)
+            reading.warn_samples(where, problems)
+            if not offsets:
+                reading.skip_unreadable(where, problems)
+                continue
+            model = field_text(computer, "model") or ""
             extradata = {
-                item.get("key", ""): item.get("value", "") for item in computer.findall("extradata")
+                (field_text(item, "key") or ""): (field_text(item, "value") or "")
+                for item in children(computer, "extradata")
             }
-            serial = extradata.get("Serial") or serials.get(
-                (model, computer.get("deviceid", "")), ""
-            )
-            profiles.append(
+            deviceid = (field_text(computer, "deviceid") or "").lower()
+            serial = extradata.get("Serial") or serials.get((model, deviceid), "")
+            reading.profiles.append(
                 make_profile(
                     start_iso=start_iso,
                     offsets_s=offsets,
@@ -117,11 +138,9 @@ def read_subsurface(path: Path) -> list[DiveProfile]:
                     temperature_c=temps,
                     model=model,
                     serial=serial,
-                    fingerprint=(computer.get("diveid") or "").upper() or None,
+                    fingerprint=(field_text(computer, "diveid") or "").upper() or None,
                     source=f"import {path.name}",
                     where=where,
                 )
             )
-    if not profiles:
-        raise InputError(f"{path}: no <dive> in this Subsurface logbook")
-    return profiles
+    return reading.result(none_found="no <dive> in this Subsurface logbook")
