@@ -11,10 +11,12 @@ example:
       --dive dives/ --out results/dive1/depth
   wreckmap-post depth --trajectory orbslam3_f_dataset.txt --dive dive68.csv \\
       --out depth/ --time-offset 289.8        # known clock offset: no search
+  wreckmap-post depth --trajectory svin/stamped_traj.txt --dive dives/ --out depth/
 
-The trajectory is any TUM file (ours, SVIn2, ORB-SLAM3) in a gravity-aligned
-frame with z up, on the camera clock; the depth found is that of the frame
-the file holds (body or camera poses). --dive is one dive CSV or a dive folder
+The trajectory is any TUM file (ours, SVIn2's with its unpadded nanoseconds,
+ORB-SLAM3's) or OKVIS CSV in a gravity-aligned frame with z up, on the camera
+clock; the depth found is that of the frame the file holds (body or camera
+poses). --dive is one dive CSV or a dive folder
 (the dive that overlaps the trajectory is chosen). Writes sync.json,
 trajectory_world.tum, trajectory_world_fused.tum and depth_sync.png.
 """
@@ -30,7 +32,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--trajectory", required=True, type=Path, help="TUM trajectory")
+    parser.add_argument(
+        "--trajectory", required=True, type=Path, help="TUM, SVIn2 or OKVIS trajectory"
+    )
     parser.add_argument("--dive", required=True, type=Path, help="dive CSV or dive folder")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument(
@@ -81,6 +85,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="how much better the chosen offset must fit than any clearly different one "
         "(log-likelihood ratio; default: 6)",
     )
+    parser.add_argument(
+        "--trajectory-format",
+        choices=("auto", "tum", "svin"),
+        default="auto",
+        help="stamps of --trajectory: tum (decimal seconds), svin (SVIn2: seconds, '.', "
+        "nanoseconds without zero padding) or auto (decided per file; default)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     parser.set_defaults(handler=_depth)
 
@@ -98,6 +109,7 @@ def _depth(args: argparse.Namespace) -> int:
         plot=not args.no_plot,
         clock_prior_window_s=args.clock_window if args.clock_window > 0 else None,
         min_evidence=args.min_evidence,
+        trajectory_format=args.trajectory_format,
     )
     if args.depth_sigma is not None:
         options.depth_sigma_m = args.depth_sigma

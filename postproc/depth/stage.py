@@ -60,7 +60,8 @@ from postproc.depth.sync import (
 from shared.clock import NS_PER_S, ClockModel
 from shared.errors import InputError, StageError
 from shared.formats.diveprofile import DiveProfile, read_dive_folder, read_profile
-from shared.formats.tum import read_tum, write_tum
+from shared.formats.svin import TrajectoryFormat, read_trajectory
+from shared.formats.tum import write_tum
 from shared.fsutil import write_text_atomic
 from shared.trajectory import Trajectory
 
@@ -120,6 +121,9 @@ class DepthOptions:
     clock_prior_zone_step_s: time-zone step between the two clocks, s (900:
         any zone difference, quarter hours included; 0: same zone).
     plot: write depth_sync.png.
+    trajectory_format: how the trajectory's stamps are spelled: "tum" (decimal
+        seconds), "svin" (SVIn2: seconds, '.', unpadded nanoseconds) or "auto"
+        (decided per file; see `shared.formats.svin`).
 
     An ambiguous offset (sync.json's `offset_ambiguity`) is refused with a
     StageError naming the dive and the competing offsets, rather than written
@@ -147,6 +151,7 @@ class DepthOptions:
     clock_prior_window_s: float | None = 300.0
     clock_prior_zone_step_s: float = 900.0
     plot: bool = True
+    trajectory_format: TrajectoryFormat = "auto"
 
 
 @dataclass
@@ -179,7 +184,15 @@ def run(
     trajectory_path = Path(trajectory_path)
     dive_path = Path(dive_path)
     _check_options(options)
-    trajectory = read_tum(trajectory_path)
+    trajectory_text = read_trajectory(trajectory_path, format=options.trajectory_format)
+    trajectory = trajectory_text.trajectory
+    log.debug(
+        "%s: %d poses, stamps read as %s (%s)",
+        trajectory_path.name,
+        len(trajectory),
+        trajectory_text.stamps,
+        trajectory_text.reason,
+    )
     if len(trajectory) < 2:
         raise InputError(f"{trajectory_path}: {len(trajectory)} pose(s) (need at least 2)")
     reference_ns = int(trajectory.stamps_ns[0])
@@ -255,6 +268,12 @@ def run(
         sample_cam_t,
     )
     document["clock_prior"] = _prior_document(options, prior, solution)
+    document["trajectory_read"] = {
+        "stamps": trajectory_text.stamps,
+        "reason": trajectory_text.reason,
+        "pose_frame": trajectory_text.pose_frame,
+        "warnings": list(trajectory_text.warnings),
+    }
     document["offset_ambiguity"] = (
         None if solution is None else _ambiguity_document(solution.ambiguity, dives)
     )

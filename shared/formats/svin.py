@@ -396,7 +396,7 @@ def _reading(
     if format != "auto":
         if chosen is not None and chosen[0] != format:
             log.warning(
-                "%s: read as %s as asked, though %s",
+                "%s: stamps read as %s as asked; the file looks otherwise: %s",
                 path.name,
                 _READING_NAMES[format],
                 chosen[1],
