@@ -11,9 +11,31 @@ prefix (FIRM, e.g. "HD5.02" = HERO5 Black); `lookup_camera` gives its entry in
 streams ("Accelerometer (up/down, right/left, forward/back)" for data order
 Z, X, Y): X to the camera's right, Y forward (out of the lens), Z up, looking
 from behind the camera held level. A stream stores its three values in a
-camera-specific order given by ORIN (HERO8+, e.g. "XzY": first value is X,
-second -Z, third Y; lower case = negated) or, on older cameras, by the model
-(`GoProCamera.imu_axis_order`).
+camera-specific order. What GoPro's gpmf-parser documents (README camera
+tables, GPMF_common.h key list), per generation:
+
+- HERO5 Black and Session: ACCL/GYRO data order Z, X, Y; no ORIN.
+- Fusion: -Y, X, Z (our "yXZ"); no ORIN.
+- HERO6 Black: Y, -X, Z ("YxZ"); later firmware also writes it as ORIN.
+- HERO7 Black: the HERO6 metadata unchanged, so "YxZ" (its files write ORIN "YxZ").
+- HERO8 Black onwards and the MAX: the file says, in three keys on ACCL and GYRO:
+  ORIN, the input order (letter i names the axis value i measures, lower case
+  = negated, e.g. "zxY" on a HERO8, "XzY" on the MAX, "ZXY" on a HERO9);
+  ORIO, the output order the values are presented in (every camera that
+  writes it says "ZXY", the HERO5's order); and MTRX, the 3x3 matrix from
+  input to output values, which must equal `orientation_matrix(ORIN, ORIO)`
+  (checked on the real MAX clip in tests/real/test_gyro_check_gopro.py).
+  The file's ORIN always wins over the model table below.
+
+The signs of X and Y are where the documentation and our data part: the
+HERO5 Black's documented Z, X, Y with the reading above made the karma
+drone's accelerometer read its forward acceleration backwards and the gyro
+turn the images the wrong way; "Zxy" (X and Y negated, a 180 degree turn about
+Z) is what that real clip measures (the gyro check: focal x1.345, every axis
+correlated positively). HERO5 Session shares the Black's documented row and so
+its entry. No rigid (unstabilised) HERO8+ clip is at hand to settle the same
+question for ORIN cameras; the gyro check's per-axis correlations
+(`gyro_check_axis_correlation` in stats.json) are the place to look when one is.
 
 We publish the IMU in a **camera-aligned body frame B**: axes parallel to the
 OpenCV camera frame C (x right, y down, z forward), origin at the IMU. So
@@ -80,10 +102,14 @@ GOPRO_CAMERAS: tuple[GoProCamera, ...] = (
     # velocity log and the image rotation: GoPro X and Y point the other way.
     GoProCamera(name="HERO5 Black", firmware_prefixes=("HD5.02",), hfov_wide_deg=118.2,
                 imu_axis_order="Zxy"),
-    GoProCamera(name="HERO5 Session", firmware_prefixes=("HD5.03",), hfov_wide_deg=118.2),
+    # HERO5 Session: the same documented data order as the Black, so the same signs.
+    GoProCamera(name="HERO5 Session", firmware_prefixes=("HD5.03",), hfov_wide_deg=118.2,
+                imu_axis_order="Zxy"),
     GoProCamera(name="HERO6 Black", firmware_prefixes=("HD6.01",), hfov_wide_deg=118.2,
                 imu_axis_order="YxZ"),
-    GoProCamera(name="HERO7 Black", firmware_prefixes=("HD7.01",), hfov_wide_deg=118.2),
+    # HERO7 Black: HERO6 metadata unchanged (gpmf-parser README), so HERO6's Y, -X, Z.
+    GoProCamera(name="HERO7 Black", firmware_prefixes=("HD7.01",), hfov_wide_deg=118.2,
+                imu_axis_order="YxZ"),
     GoProCamera(name="HERO7 Silver", firmware_prefixes=("HD7.02",), hfov_wide_deg=118.2,
                 imu_axis_order="YXz"),
     GoProCamera(name="HERO7 White", firmware_prefixes=("HD7.03",), hfov_wide_deg=118.2),
@@ -153,6 +179,19 @@ def axis_order_matrix(order: str, *, source: str = "<ORIN>") -> np.ndarray:
     matrix = np.zeros((3, 3))
     for column, letter in enumerate(order):
         matrix["XYZ".index(letter.upper()), column] = -1.0 if letter.islower() else 1.0
+    return matrix
+
+
+def orientation_matrix(orin: str, orio: str, *, source: str = "<ORIN>") -> np.ndarray:
+    """(3, 3) matrix M with `v_out = M @ v_in` for a stream's ORIN (input) and ORIO
+    (output) orders: what GoPro's MTRX key must hold for the same stream.
+
+    Both orders name GoPro axes, lower case negated; InputError when either is
+    not a permutation of X, Y, Z.
+    """
+    into_gopro = axis_order_matrix(orin, source=source)
+    out_of_gopro = axis_order_matrix(orio, source=source)
+    matrix: np.ndarray = out_of_gopro.T @ into_gopro
     return matrix
 
 

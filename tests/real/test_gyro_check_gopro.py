@@ -32,8 +32,9 @@ import numpy as np
 import pytest
 import yaml
 
+from field.gopro import cameras
 from field.gopro.mp4 import read_mp4
-from field.gopro.telemetry import global_settings, read_telemetry
+from field.gopro.telemetry import global_settings, iter_gpmf_payloads, read_telemetry
 from postproc.slam.frontend import FrontendOptions, KltFrontend
 from postproc.slam.gyro_check import (
     GyroCheck,
@@ -223,3 +224,31 @@ def test_the_stage_probe_gives_the_same_verdict(
     check = probe_gyro(source, source.calibration, FrontendOptions(), GyroCheckOptions())
     assert check.verdict == verdict, check.reason
     assert check.turning_pairs == probe.check.turning_pairs
+
+
+def _imu_orientation_keys(path: Path) -> dict[str, tuple[str | None, str | None, object]]:
+    """ACCL/GYRO -> (ORIN, ORIO, MTRX) as the camera's first payload writes them."""
+    found: dict[str, tuple[str | None, str | None, object]] = {}
+    for _, _, _, payload in iter_gpmf_payloads(read_mp4(path)):
+        for stream in payload.streams:
+            if stream.key in ("ACCL", "GYRO") and stream.key not in found:
+                found[stream.key] = (stream.orientation_in, stream.orientation_out, stream.matrix)
+    return found
+
+
+def test_the_axis_keys_each_generation_writes(shared_data: Path) -> None:
+    """HERO5 writes no ORIN (the model table applies: "Zxy"); the MAX writes ORIN "XzY",
+    ORIO "ZXY" and an MTRX that is exactly the matrix those two orders define."""
+    hero5 = _imu_orientation_keys(shared_data / "gopro" / "karma.mp4")
+    assert hero5 == {"ACCL": (None, None, None), "GYRO": (None, None, None)}
+    assert cameras.lookup_camera(firmware="HD5.02.02.60.00").imu_axis_order == "Zxy"
+    gopro_max = _imu_orientation_keys(shared_data / "gopro" / "max-heromode.mp4")
+    for key in ("ACCL", "GYRO"):
+        orin, orio, matrix = gopro_max[key]
+        assert (orin, orio) == ("XzY", "ZXY")
+        np.testing.assert_array_equal(
+            np.reshape(matrix, (3, 3)), cameras.orientation_matrix(orin, orio)
+        )
+    # Into the camera-aligned body frame, the MAX's file order is already x right,
+    # y down, z forward.
+    np.testing.assert_array_equal(cameras.body_from_file_axes("XzY"), np.eye(3))
