@@ -71,6 +71,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     simulate.add_argument("--stall-after", type=int, help="go silent before this reply packet")
     simulate.add_argument("--stall-s", type=float, default=5.0, help="length of the stall, s")
     simulate.add_argument("--disconnect-after", type=int, help="close the pty after N replies")
+    simulate.add_argument(
+        "--disconnect-after-bytes",
+        type=int,
+        metavar="N",
+        help="pull the cable after N bytes sent, even mid-reply",
+    )
     simulate.set_defaults(handler=_simulate)
 
     importer = commands.add_parser(
@@ -153,6 +159,7 @@ def _simulate(args: argparse.Namespace) -> int:
         stall_after_packets=args.stall_after,
         stall_s=args.stall_s,
         disconnect_after_packets=args.disconnect_after,
+        disconnect_after_bytes=args.disconnect_after_bytes,
         seed=args.seed,
     )
 

@@ -77,6 +77,8 @@ class FaultOptions:
     random other byte. stall_after_packets: before that response packet (1-based count)
     the unit goes silent for stall_s seconds, once. disconnect_after_packets: after that
     many response packets the pty is closed (the unit is gone until restarted).
+    disconnect_after_bytes: the cable is pulled after that many bytes sent (device ->
+    host), wherever it falls: mid-frame, the rest of that frame is never sent.
     """
 
     drop_rate: float = 0.0
@@ -84,6 +86,7 @@ class FaultOptions:
     stall_after_packets: int | None = None
     stall_s: float = 0.0
     disconnect_after_packets: int | None = None
+    disconnect_after_bytes: int | None = None
     seed: int = 0
 
 
@@ -390,6 +393,7 @@ class LineFaults:
         self.faults = faults
         self._rng = random.Random(faults.seed)
         self.packets = 0
+        self.bytes_sent = 0
         self.dropped = 0
         self.corrupted = 0
         self.stalled = False
@@ -403,7 +407,19 @@ class LineFaults:
 
     def disconnect_now(self) -> bool:
         limit = self.faults.disconnect_after_packets
-        return limit is not None and self.packets >= limit
+        byte_limit = self.faults.disconnect_after_bytes
+        return (limit is not None and self.packets >= limit) or (
+            byte_limit is not None and self.bytes_sent >= byte_limit
+        )
+
+    def cut(self, frame: bytes) -> bytes:
+        """The part of `frame` that goes out before the cable is pulled (all of it if no
+        byte cut is set or it lies beyond this frame); counts what is sent."""
+        limit = self.faults.disconnect_after_bytes
+        if limit is not None:
+            frame = frame[: max(limit - self.bytes_sent, 0)]
+        self.bytes_sent += len(frame)
+        return frame
 
     def apply(self, frame: bytes) -> bytes:
         self.packets += 1
@@ -458,9 +474,13 @@ def serve_pty(
                 continue  # no client has the slave open right now
             for frame in device.feed(data):
                 line.before_packet()
-                os.write(master, line.apply(frame))
+                os.write(master, line.cut(line.apply(frame)))
                 if line.disconnect_now():
-                    log.info("simulated disconnect after %d packets", line.packets)
+                    log.info(
+                        "simulated disconnect after %d packets, %d bytes",
+                        line.packets,
+                        line.bytes_sent,
+                    )
                     os.close(master)
                     os.close(slave)
                     connected = False
