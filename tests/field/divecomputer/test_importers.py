@@ -190,24 +190,28 @@ EXTERNAL = """<?xml version="1.0"?>
         ("lol.uddf", BILLION_LAUGHS, "refused unsafe XML"),
         ("ext.xml", EXTERNAL, "refused unsafe XML"),
         ("broken.uddf", "<uddf><dive>", r"broken.uddf:1:\d+: malformed XML"),
-        ("other.xml", "<gpx></gpx>", "neither Subsurface"),
+        ("other.xml", "<gpx></gpx>", r"neither Subsurface .* \(root element <gpx>"),
         ("notes.txt", "hello", "unknown logbook type .txt"),
         ("empty.uddf", "<uddf></uddf>", "no <dive>"),
         ("empty.ssrf", "<divelog></divelog>", "no <dive>"),
         ("wrongroot.ssrf", "<uddf></uddf>", "expected Subsurface's <divelog>"),
         ("wrongroot.uddf", "<divelog/>", r"expected <uddf>"),
-        ("nodate.uddf", "<uddf><dive><samples/></dive></uddf>", "no informationbeforedive"),
+        (
+            "nodate.uddf",
+            "<uddf><dive><samples/></dive></uddf>",
+            r"no importable dive \(dive 1: no informationbeforedive/datetime\)",
+        ),
         (
             "baddepth.ssrf",
             "<divelog><dive date='2020-01-01'><sample time='0:10 min' depth='deep' /></dive>"
             "</divelog>",
-            "'deep' is not a number",
+            r"no importable dive \(dive 1: no readable sample; first: sample at 0:10 min: 'deep'",
         ),
         (
             "badunit.ssrf",
             "<divelog><dive date='2020-01-01'><sample time='0:10 min' depth='3 yd' /></dive>"
             "</divelog>",
-            "depth unit 'yd'",
+            "depth unit 'yd' in '3 yd'",
         ),
         (
             "badtemp.ssrf",
@@ -218,26 +222,30 @@ EXTERNAL = """<?xml version="1.0"?>
         (
             "notime.ssrf",
             "<divelog><dive date='2020-01-01'><sample depth='3 m' /></dive></divelog>",
-            "sample without a time",
+            "sample 1: no time",
         ),
         (
             "badtime.ssrf",
             "<divelog><dive date='2020-01-01'><sample time='x:y min' depth='3 m'/></dive>"
             "</divelog>",
-            "not mm:ss",
+            "time 'x:y min' is not mm:ss",
         ),
-        ("nodate.ssrf", "<divelog><dive><sample time='1:00 min'/></dive></divelog>", "no date"),
+        (
+            "nodate.ssrf",
+            "<divelog><dive><sample time='1:00 min'/></dive></divelog>",
+            r"nodate.ssrf: no importable dive \(dive 1: no date\)$",
+        ),
         (
             "baddate.ssrf",
             "<divelog><dive date='May 1'><sample time='1:00 min'/></dive></divelog>",
-            "is not ISO 8601",
+            "date 'May 1' is not y-m-d or d.m.y",
         ),
         (
             "nowaypointtime.uddf",
             "<uddf><dive><informationbeforedive><datetime>2020-01-01T10:00:00</datetime>"
             "</informationbeforedive><samples><waypoint><depth>3</depth></waypoint></samples>"
             "</dive></uddf>",
-            "no divetime",
+            r"dive 1: no readable sample; first: waypoint 1: no divetime",
         ),
         (
             "badnumber.uddf",
@@ -266,11 +274,15 @@ def test_csv_refusals(shared_data: Path, tmp_path: Path) -> None:
         read_logbook(bad_date)
     bad_cell = tmp_path / "cell.csv"
     bad_cell.write_text("\n".join([*lines[:3], "10,deep" + lines[3][len("0,1.3") :]]))
-    with pytest.raises(InputError, match=r"cell.csv:4: 'deep' is not a number"):
+    with pytest.raises(
+        InputError, match=r"cell.csv: no readable sample line \(line 4: 'deep' is not"
+    ):
         read_logbook(bad_cell)
     no_time = tmp_path / "notime.csv"
     no_time.write_text("\n".join([*lines[:3], "N/A" + lines[3][1:]]))
-    with pytest.raises(InputError, match=r"notime\.csv:4: sample without a time"):
+    with pytest.raises(
+        InputError, match=r"notime\.csv: no readable sample line \(line 4: sample without"
+    ):
         read_logbook(no_time)
     no_depth = tmp_path / "nodepth.csv"
     no_depth.write_text("\n".join([*lines[:2], "Time (sec),Temp", "0,1"]))
@@ -312,3 +324,182 @@ def test_cli_import(shared_data: Path, tmp_path: Path) -> None:
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert bad.returncode == 1 and "no such logbook file" in bad.stderr
+
+
+# --------------------------------------------------------------- what real writers spell
+
+UNPADDED = """<divelog program='subsurface' version='3'><dives>
+<dive number='1' date='2014-4-1' time='10:0:0' duration='30:00 min'>
+  <divecomputer model='Suunto Vyper' diveid='0a0b0c0d'>
+  <sample time='0:10 min' depth='3,5 m' temp='15.0 C' />
+  <sample time='1:00 min' depth='12.3 m' temp='-60.0 C' />
+  <sample time='1:30 min' depth='twelve' />
+  <sample time='2:00 min'><depth>10.0 m</depth><temp>288.15 K</temp></sample>
+  </divecomputer>
+</dive>
+<dive number='2'>
+  <divecomputer model='Suunto Vyper'><sample time='0:10 min' depth='3 m' /></divecomputer>
+</dive>
+<dive number='3' date='2.4.2014' time='9:5'>
+  <sample time='30' depth='4 m' />
+  <sample time='1:00:00' depth='5 m' />
+</dive>
+<dive number='4' date='2014-04-03' time='08:00:00' />
+</dives></divelog>
+"""
+
+
+def test_subsurface_spellings_and_skipped_dives(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "log.xml"
+    path.write_text(UNPADDED)
+    first, third = read_logbook(path)
+    assert first.start_iso == "2014-04-01T10:00:00" and first.fingerprint == "0A0B0C0D"
+    offsets = (first.stamps_s - first.start_s).tolist()
+    assert offsets == [10.0, 60.0, 120.0]  # the unreadable 'twelve' sample is skipped
+    assert first.depth_m.tolist() == [3.5, 12.3, 10.0]  # decimal comma read as a point
+    # -60 C is outside what a dive computer logs (Subsurface drops it too); K converted
+    assert same(first.temperature_c[1], NAN) and first.temperature_c[2] == 15.0
+    assert third.start_iso == "2014-04-02T09:05:00"  # d.m.y and h:m
+    assert (third.stamps_s - third.start_s).tolist() == [30.0, 3600.0]
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("dive 1 divecomputer 1: 1 sample skipped" in w and "'twelve'" in w for w in warnings)
+    assert any(w.endswith("dive 2 divecomputer 1: skipped (no date)") for w in warnings)
+    assert any(w.endswith("dive 4: skipped (no samples)") for w in warnings)
+
+
+PLACEHOLDER_UDDF = """<?xml version="1.0" encoding="UTF-8"?>
+<uddf version="3.3.0"><profiledata><repetitiongroup id="rg1">
+<dive id="previous_dive"><informationbeforedive><surfaceintervalbeforedive><infinity/>
+</surfaceintervalbeforedive></informationbeforedive></dive>
+<dive id="dive"><informationbeforedive><datetime>2022-4-24 10:30:58</datetime>
+</informationbeforedive><samples>
+<waypoint><depth>0.0</depth><divetime>0.0</divetime><temperature>290.0</temperature></waypoint>
+<waypoint><depth>2.2</depth><divetime>10.0</divetime><temperature>1e999</temperature></waypoint>
+<waypoint><depth>x</depth><divetime>20.0</divetime></waypoint>
+<waypoint><depth>4.6</depth><divetime>30.0</divetime></waypoint>
+</samples></dive>
+<dive id="old"><date><year>2011</year><month>5</month><day>17</day></date>
+<time><hour>11</hour><minute>1</minute></time>
+<samples><waypoint><depth>1.5</depth><divetime>30</divetime></waypoint></samples></dive>
+</repetitiongroup></profiledata></uddf>
+"""
+
+
+def test_uddf_placeholder_dive_is_skipped(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "apd.uddf"
+    path.write_text(PLACEHOLDER_UDDF)
+    dive, old = read_logbook(path)
+    assert dive.start_iso == "2022-04-24T10:30:58" and dive.fingerprint == "dive"
+    assert dive.depth_m.tolist() == [0.0, 2.2, 4.6]
+    assert dive.temperature_c[0] == pytest.approx(16.85) and same(dive.temperature_c[1], NAN)
+    assert old.start_iso == "2011-05-17T11:01:00" and old.depth_m.tolist() == [1.5]
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any(
+        w.endswith("dive previous_dive: skipped (no informationbeforedive/datetime)")
+        for w in warnings
+    )
+    assert any("dive dive: 1 sample skipped (first: waypoint 3: 'x' is not" in w for w in warnings)
+
+
+@pytest.mark.parametrize(
+    ("text", "seconds"),
+    [
+        ("12:34 min", 754.0), ("1:02:03", 3723.0), ("754 s", 754.0), ("754", 754.0),
+        ("30 min", 1800.0), ("0:10.5 min", 10.5), ("2.0", 2.0),
+    ],
+)  # fmt: skip
+def test_sample_time_spellings(text: str, seconds: float) -> None:
+    from field.divecomputer.importers.common import duration_s_from_text
+
+    assert duration_s_from_text(text) == seconds
+
+
+@pytest.mark.parametrize(
+    ("date", "time", "iso"),
+    [
+        ("2014-4-1", "10:0:0", "2014-04-01T10:00:00"),
+        ("2014-04-01", None, "2014-04-01T00:00:00"),
+        ("1.4.2014", "7:30", "2014-04-01T07:30:00"),
+        ("2011-03-20 10:22:38", None, "2011-03-20T10:22:38"),
+        ("2014-04-02T10:00:00Z", None, "2014-04-02T10:00:00"),
+        ("20140402T100000", None, "2014-04-02T10:00:00"),
+    ],
+)
+def test_date_spellings(date: str, time: str | None, iso: str) -> None:
+    from field.divecomputer.importers.common import combine_date_time
+
+    assert combine_date_time(date, time) == iso
+
+
+@pytest.mark.parametrize("date", ["2014-13-01", "2014-02-30", "0-1-1", "May 1", ""])
+def test_impossible_dates_are_refused(date: str) -> None:
+    from field.divecomputer.importers.common import combine_date_time
+
+    with pytest.raises(ValueError, match="date"):
+        combine_date_time(date, None)
+
+
+def test_not_a_dive_log_names_the_element(tmp_path: Path) -> None:
+    path = tmp_path / "suunto.xml"
+    path.write_text(
+        '<?xml version="1.0" encoding="ISO-8859-15" ?>\n<!-- exported -->\n'
+        "<SUUNTO><HEADER><MSGNAME>SDM001A</MSGNAME></HEADER></SUUNTO>\n"
+    )
+    with pytest.raises(InputError, match=r"suunto\.xml: .*\(root element <SUUNTO>;") as caught:
+        read_logbook(path)
+    assert "\n" not in str(caught.value)
+
+
+def folder_state(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_rejected_file_leaves_the_dive_folder_as_it_was(tmp_path: Path) -> None:
+    good = tmp_path / "good.ssrf"
+    good.write_text(SUBSURFACE_TRIP)
+    out = tmp_path / "dives"
+    assert len(import_logbook(good, out)) == 2
+    before = folder_state(out)
+    bad = tmp_path / "bad.ssrf"
+    bad.write_text(
+        "<divelog><dive number='9' date='2020-13-40'><sample time='1:00'/></dive></divelog>"
+    )
+    with pytest.raises(InputError, match=r"bad\.ssrf: no importable dive \(dive 9: no such date"):
+        import_logbook(bad, out)
+    broken = tmp_path / "broken.ssrf"
+    broken.write_text(SUBSURFACE_TRIP.replace("</dive>", "</dove>"))
+    with pytest.raises(InputError, match="malformed XML"):
+        import_logbook(broken, out)
+    assert folder_state(out) == before
+    fresh = tmp_path / "fresh"
+    with pytest.raises(InputError):
+        import_logbook(bad, fresh)
+    assert not fresh.exists()
+
+
+def test_a_taken_csv_name_skips_that_dive_only(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    good = tmp_path / "good.ssrf"
+    good.write_text(SUBSURFACE_TRIP)
+    out = tmp_path / "dives"
+    assert len(import_logbook(good, out)) == 2
+    before = folder_state(out)
+    # Same dives, other model: new dives by identity, but their CSV names are taken.
+    other = tmp_path / "other.ssrf"
+    other.write_text(SUBSURFACE_TRIP.replace("model='A'", "model='A2'"))
+    assert import_logbook(other, out) == []
+    assert folder_state(out) == before
+    assert any("already taken by another dive" in r.getMessage() for r in caplog.records)
+
+
+def test_csv_odd_line_is_skipped(shared_data: Path, tmp_path: Path) -> None:
+    lines = (shared_data / "divelogs" / "shearwater-petrel3-dive88.csv").read_text().splitlines()
+    damaged = tmp_path / "damaged.csv"
+    damaged.write_text(
+        "\n".join([*lines[:4], "10,deep" + lines[4][len(lines[4].split(",")[0]) + 4 :], *lines[5:]])
+    )
+    (dive,) = read_logbook(damaged)
+    assert dive.stamps_s.size == len(lines) - 4
