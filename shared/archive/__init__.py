@@ -13,6 +13,7 @@ from shared.archive.messages import (
     CompressedVideo,
     DepthSample,
     Imu,
+    RecorderEvent,
     SessionInfo,
 )
 from shared.archive.reader import (
@@ -24,6 +25,7 @@ from shared.archive.reader import (
 )
 from shared.archive.rosbag2 import write_rosbag2_metadata
 from shared.archive.topics import (
+    HEALTH_TOPIC,
     SESSION_TOPIC,
     depth_topic,
     image_topic,
@@ -34,6 +36,7 @@ from shared.archive.topics import (
 from shared.archive.writer import ArchiveWriter, part_path
 
 __all__ = [
+    "HEALTH_TOPIC",
     "SESSION_TOPIC",
     "ArchiveMessage",
     "ArchiveReader",
@@ -44,6 +47,7 @@ __all__ = [
     "Imu",
     "ImuSeries",
     "RawRecord",
+    "RecorderEvent",
     "SessionInfo",
     "TopicInfo",
     "depth_topic",

@@ -31,6 +31,7 @@ from shared.archive.messages import (
     CompressedVideo,
     DepthSample,
     Imu,
+    RecorderEvent,
     SessionInfo,
 )
 from shared.errors import InputError
@@ -77,6 +78,13 @@ _DEFINITIONS: dict[str, str] = {
         "std_msgs/Header header\n"
         "string yaml_text\n"
     ),
+    "wreckmap_msgs/RecorderEvent": (
+        "# Something the recorder saw: a source lost or back, a clock step, a full disk.\n"
+        "# header.stamp is host time; header.frame_id the source concerned (may be empty).\n"
+        "std_msgs/Header header\n"
+        "string kind  # source_lost, source_back, clock_step, disk\n"
+        "string yaml_text  # the details\n"
+    ),
 }
 
 _DEPENDENCIES: dict[str, tuple[str, ...]] = {
@@ -90,6 +98,7 @@ _DEPENDENCIES: dict[str, tuple[str, ...]] = {
     "foxglove_msgs/CompressedVideo": ("builtin_interfaces/Time",),
     "wreckmap_msgs/DepthSample": ("std_msgs/Header", "builtin_interfaces/Time"),
     "wreckmap_msgs/SessionInfo": ("std_msgs/Header", "builtin_interfaces/Time"),
+    "wreckmap_msgs/RecorderEvent": ("std_msgs/Header", "builtin_interfaces/Time"),
 }
 
 _SEPARATOR = "=" * 80
@@ -448,6 +457,25 @@ def decode_session_info(
     return SessionInfo(stamp_ns=stamp_ns, yaml_text=cursor.string())
 
 
+def encode_recorder_event(message: RecorderEvent) -> bytes:
+    """CDR bytes of a `wreckmap_msgs/msg/RecorderEvent`."""
+    head, pos = _header(message.stamp_ns, message.frame_id)
+    kind, pos = _str_field(pos, message.kind)
+    text, pos = _str_field(pos, message.yaml_text)
+    return head + kind + text
+
+
+def decode_recorder_event(
+    data: bytes | memoryview, name: str = "wreckmap_msgs/msg/RecorderEvent"
+) -> RecorderEvent:
+    """Decode one `wreckmap_msgs/msg/RecorderEvent`."""
+    cursor = _Cursor(data, name)
+    stamp_ns = cursor.time_ns()
+    frame_id = cursor.string()
+    kind = cursor.string()
+    return RecorderEvent(stamp_ns=stamp_ns, frame_id=frame_id, kind=kind, yaml_text=cursor.string())
+
+
 # ---------------------------------------------------------------------------
 # Dispatch by class and by ROS type name.
 
@@ -457,6 +485,7 @@ ENCODERS: dict[type[Any], Callable[[Any], bytes]] = {
     CompressedVideo: encode_compressed_video,
     DepthSample: encode_depth_sample,
     SessionInfo: encode_session_info,
+    RecorderEvent: encode_recorder_event,
 }
 
 DECODERS: dict[str, Callable[[bytes | memoryview, str], ArchiveMessage]] = {
@@ -465,6 +494,7 @@ DECODERS: dict[str, Callable[[bytes | memoryview, str], ArchiveMessage]] = {
     CompressedVideo.ROS_TYPE_NAME: decode_compressed_video,
     DepthSample.ROS_TYPE_NAME: decode_depth_sample,
     SessionInfo.ROS_TYPE_NAME: decode_session_info,
+    RecorderEvent.ROS_TYPE_NAME: decode_recorder_event,
 }
 
 

@@ -100,7 +100,33 @@ class SessionInfo:
     yaml_text: str
 
 
-ArchiveMessage = Imu | CompressedImage | CompressedVideo | DepthSample | SessionInfo
+@dataclass
+class RecorderEvent:
+    """Something the recorder saw happen -> `wreckmap_msgs/msg/RecorderEvent`.
+
+    `stamp_ns` is host time (the recorder's monotonic-based clock, like every log time);
+    `frame_id` names the source concerned ("" for the recorder itself); `kind` is one of
+    `EVENT_KINDS`; `yaml_text` holds the details (times in ns, lengths in s).
+    """
+
+    ROS_TYPE_NAME: ClassVar[str] = "wreckmap_msgs/msg/RecorderEvent"
+
+    stamp_ns: int
+    frame_id: str
+    kind: str
+    yaml_text: str
+
+
+EVENT_KINDS: dict[str, str] = {
+    "source_lost": "a source stopped delivering (unplugged, stalled); the others go on",
+    "source_back": "a lost source delivers again; the gap lasted `gap_s`",
+    "clock_step": "the host wall clock stepped by `step_s` against the monotonic clock",
+    "disk": "free space fell under the watermark, or a write failed",
+}
+"""What a `RecorderEvent.kind` can be."""
+
+
+ArchiveMessage = Imu | CompressedImage | CompressedVideo | DepthSample | SessionInfo | RecorderEvent
 """Any message an archive can hold."""
 
 MESSAGE_TYPES: tuple[type[ArchiveMessage], ...] = (
@@ -109,4 +135,5 @@ MESSAGE_TYPES: tuple[type[ArchiveMessage], ...] = (
     CompressedVideo,
     DepthSample,
     SessionInfo,
+    RecorderEvent,
 )

@@ -23,12 +23,16 @@ from shared.archive.messages import (
     CompressedVideo,
     DepthSample,
     Imu,
+    RecorderEvent,
     SessionInfo,
 )
 from shared.errors import InputError
 
 SESSION_TOPIC = "/session"
 """The one topic holding the session description."""
+
+HEALTH_TOPIC = "/health"
+"""The recorder's events: sources lost and back, clock steps, disk (`RecorderEvent`)."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,9 @@ TOPIC_KINDS: dict[str, TopicKind] = {
         r"/depth(\d+)", DepthSample, "depth (m), pressure (Pa), temperature (C) of sensor N"
     ),
     "session": TopicKind(re.escape(SESSION_TOPIC), SessionInfo, "session description (YAML)"),
+    "health": TopicKind(
+        re.escape(HEALTH_TOPIC), RecorderEvent, "recorder events: source gaps, clock steps"
+    ),
 }
 
 _COMPILED = [(re.compile(kind.pattern), kind) for kind in TOPIC_KINDS.values()]

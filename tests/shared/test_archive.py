@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from shared.archive import (
+    HEALTH_TOPIC,
     SESSION_TOPIC,
     ArchiveReader,
     ArchiveWriter,
@@ -17,6 +18,7 @@ from shared.archive import (
     CompressedVideo,
     DepthSample,
     Imu,
+    RecorderEvent,
     SessionInfo,
     cdr,
     depth_topic,
@@ -110,17 +112,26 @@ def sample_messages(rng: np.random.Generator) -> list[tuple[str, ArchiveMessage]
             )
         )
     out.append((SESSION_TOPIC, SessionInfo(stamp_ns=T0, yaml_text="id: s1\nsite: Épave ü\n")))
+    out.append(
+        (
+            HEALTH_TOPIC,
+            RecorderEvent(
+                stamp_ns=T0 + 7, frame_id="oak0", kind="source_back", yaml_text="gap_s: 2.5\n"
+            ),
+        )
+    )
     return out
 
 
 # -- CDR codec ---------------------------------------------------------------
 
 
-@pytest.mark.parametrize("index", range(5))
+@pytest.mark.parametrize("index", range(6))
 def test_cdr_round_trip_each_type_bit_exact(index: int) -> None:
     rng = np.random.default_rng(index)
     messages = [m for _, m in sample_messages(rng)]
-    kinds = [Imu, CompressedVideo, CompressedImage, DepthSample, SessionInfo]
+    kinds = [Imu, CompressedVideo, CompressedImage, DepthSample, SessionInfo, RecorderEvent]
+    assert any(type(m) is kinds[index] for m in messages)
     for message in (m for m in messages if type(m) is kinds[index]):
         data = cdr.encode(message)
         assert data[:4] == b"\x00\x01\x00\x00"
@@ -233,6 +244,7 @@ def test_topic_registry() -> None:
     assert message_type_for_topic("/imu12") is Imu
     assert message_type_for_topic("/depth0") is DepthSample
     assert message_type_for_topic(SESSION_TOPIC) is SessionInfo
+    assert message_type_for_topic(HEALTH_TOPIC) is RecorderEvent
     for bad in ("/imu", "/cam0", "/cam0/video/x", "imu0", "/gps0", "/sessionx"):
         with pytest.raises(InputError, match="not an archive topic"):
             message_type_for_topic(bad)

@@ -13,6 +13,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType, Writer
 
 from shared.archive import (
+    HEALTH_TOPIC,
     SESSION_TOPIC,
     ArchiveReader,
     ArchiveWriter,
@@ -20,6 +21,7 @@ from shared.archive import (
     CompressedVideo,
     DepthSample,
     Imu,
+    RecorderEvent,
     SessionInfo,
     cdr,
     depth_topic,
@@ -85,6 +87,14 @@ def session_messages(rng: np.random.Generator, t0: int = T0) -> list[tuple[str, 
             )
         )
     out.append((SESSION_TOPIC, SessionInfo(stamp_ns=t0 + 4, yaml_text="id: abc\nsite: x\n")))
+    out.append(
+        (
+            HEALTH_TOPIC,
+            RecorderEvent(
+                stamp_ns=t0 + 5, frame_id="sim", kind="clock_step", yaml_text="step_s: 3\n"
+            ),
+        )
+    )
     return out
 
 
@@ -159,6 +169,9 @@ def check_rosbags_message(msg: Any, expected: ArchiveMessage) -> None:
         for name in ("depth_m", "pressure_pa", "temperature_c"):
             assert f64(getattr(msg, name)) == f64(getattr(expected, name))
         assert math.isnan(msg.pressure_pa) == math.isnan(expected.pressure_pa)
+    elif isinstance(expected, RecorderEvent):
+        assert (msg.header.frame_id, msg.kind) == (expected.frame_id, expected.kind)
+        assert msg.yaml_text == expected.yaml_text
     else:
         assert msg.header.frame_id == ""
         assert msg.yaml_text == expected.yaml_text
@@ -192,7 +205,7 @@ def test_rosbags_types_from_our_msg_text() -> None:
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.EMPTY)
-    for kind in (DepthSample, SessionInfo):
+    for kind in (DepthSample, SessionInfo, RecorderEvent):
         store.register(get_types_from_msg(cdr.schema_text(kind), kind.ROS_TYPE_NAME))
     sample = DepthSample(stamp_ns=T0, frame_id="d", depth_m=1.25, pressure_pa=1.5e5)
     msg = store.deserialize_cdr(cdr.encode(sample), DepthSample.ROS_TYPE_NAME)
