@@ -25,8 +25,12 @@ chapter k-1 ends, using each chapter's exact video duration (sum of its
 sample durations, a rational number of seconds; rounded to the nanosecond
 once per chapter). Video stamps are presentation times; the MCAP log time is
 the stamp, except with B-frames where it is the decode time so that log-time
-order stays decode order. IMU times come from the GPMF timing model
-(`field.gopro.timing`) on each chapter's media clock; samples of chapter k
+order stays decode order. IMU times come from the one GPMF reader
+(`field.gopro.telemetry.assemble_telemetry`, the timing model of
+`field.gopro.timing`) on each chapter's media clock, as the camera stamped
+them: a corrupt or missing payload leaves a gap and shifts nothing, and an
+IMU that starts after the first frame is kept so (session.yaml's
+`imu_start_s` per chapter; a warning above 20 ms); samples of chapter k
 that fall at or before the last sample of chapter k-1 (the telemetry of
 consecutive chapters overlaps by a few ms) are dropped so stamps strictly
 increase.
@@ -52,7 +56,7 @@ import logging
 import re
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from fractions import Fraction
@@ -64,8 +68,7 @@ import yaml
 
 from field.gopro import cameras
 from field.gopro.annexb import CODEC_NAMES, to_annexb
-from field.gopro.gpmf import GPMFError, GPMFPayload, GPMFStream, decode_value, parse_klv
-from field.gopro.gpmf import parse_payload as parse_gpmf_payload
+from field.gopro.gpmf import GPMFError, decode_value, parse_klv
 from field.gopro.mp4 import (
     CodecConfig,
     MissingMoovError,
@@ -75,7 +78,7 @@ from field.gopro.mp4 import (
     read_mp4,
 )
 from field.gopro.salvage import salvage_mdat
-from field.gopro.timing import PayloadSamples, stream_times
+from field.gopro.telemetry import GPMFSample, assemble_telemetry, iter_gpmf_samples
 from shared.archive import (
     ArchiveWriter,
     CompressedVideo,
@@ -383,106 +386,74 @@ class _ChapterImu:
     axis_order: str
     axis_order_source: str
     timing_method: str
+    clock_origin: str  # how STMP was tied to the chapter's media time
 
 
-@dataclass
-class _StreamParts:
-    payloads: list[PayloadSamples] = field(default_factory=list)
-    values: list[np.ndarray] = field(default_factory=list)
-    axis_order: str | None = None
+# An IMU that starts more than this after video frame 0 is said in a warning: four samples at
+# 200 Hz, above the few ms by which the TSMP fit's start (HERO5-7) is uncertain (karma.mp4: 11 ms).
+_LATE_IMU_NS = 20_000_000
 
 
-def _iter_payloads(
-    video: _ChapterVideo, warnings: list[str]
-) -> tuple[list[tuple[float, float, GPMFPayload]], bool]:
-    """(start_s, duration_s, payload) of each readable GPMF payload; bool: a GPMF track exists."""
-    name = video.chapter.path.name
-    result: list[tuple[float, float, GPMFPayload]] = []
+def _gpmf_samples(video: _ChapterVideo, warnings: list[str]) -> Iterable[GPMFSample] | None:
+    """The chapter's stored GPMF payloads, or None (with a warning) when it has none."""
     if video.mp4 is not None:
-        mp4 = video.mp4
         try:
-            track = mp4.gpmf_track()
+            video.mp4.gpmf_track()
         except InputError as error:
             warnings.append(str(error))
-            return [], False
-        starts = track.decode_times / float(track.timescale)
-        durations = track.durations / float(track.timescale)
-        bad = 0
-        first_error = ""
-        for index, (offset, data) in enumerate(mp4.iter_samples(track)):
-            try:
-                payload = parse_gpmf_payload(data, source=name, base_offset=offset)
-            except GPMFError as error:
-                bad += 1
-                first_error = first_error or str(error)
-                continue
-            result.append((float(starts[index]), float(durations[index]), payload))
-        if bad:
-            warnings.append(
-                f"{name}: {bad} of {track.sample_count} GPMF payloads corrupt and skipped "
-                f"(first: {first_error})"
-            )
-        return result, True
+            return None
+        return iter_gpmf_samples(video.mp4)
     raw = video.gpmf_payloads or []
-    bad = 0
-    for index, data in enumerate(raw):
-        try:
-            payload = parse_gpmf_payload(data, source=name)
-        except GPMFError:
-            bad += 1
-            continue
-        # No sample table: GoPro flushes telemetry about every 1.001 s; STMP refines it.
-        result.append((index * 1.001, 1.001, payload))
-    if bad:
-        warnings.append(f"{name}: {bad} salvaged GPMF payloads corrupt and skipped")
-    return result, bool(raw)
+    if not raw:
+        return None
+    # No sample table: GoPro flushes telemetry about every 1.001 s; STMP refines it.
+    return [
+        GPMFSample(index=index, start_s=index * 1.001, duration_s=1.001, data=data)
+        for index, data in enumerate(raw)
+    ]
 
 
 def _read_chapter_imu(
     video: _ChapterVideo, camera: cameras.GoProCamera, warnings: list[str]
 ) -> _ChapterImu | None:
-    """ACCL + GYRO of a chapter in the body frame, or None (with a warning) when absent."""
+    """ACCL + GYRO of a chapter in the body frame, or None (with a warning) when absent.
+
+    The streams and their sample times come from `assemble_telemetry`, the
+    reader `gopro telemetry` uses too; here they are turned to the body frame
+    and put on one time base.
+    """
     name = video.chapter.path.name
-    payloads, has_track = _iter_payloads(video, warnings)
-    if not has_track:
+    samples = _gpmf_samples(video, warnings)
+    if samples is None:
         return None
-    parts = {"ACCL": _StreamParts(), "GYRO": _StreamParts()}
-    origin_us: int | None = None
-    camera_device: int | None = None
-    for start_s, duration_s, payload in payloads:
-        if camera_device is None and payload.streams:
-            camera_device = payload.streams[0].device_id
-        for stream in payload.streams:
-            if stream.device_id != camera_device:
-                continue  # a Karma drone or another device's IMU
-            if origin_us is None and stream.key in ("CORI", "IORI", "GRAV"):
-                origin_us = stream.timestamp_us
-            if stream.key in parts and stream.samples:
-                _add_stream(parts[stream.key], stream, start_s, duration_s, name)
-    missing = [key for key, part in parts.items() if not part.payloads]
+    found = assemble_telemetry(samples, source=name, keys=("ACCL", "GYRO"))
+    warnings.extend(found.warnings)
+    missing = [key for key in ("ACCL", "GYRO") if key not in found.streams]
     if missing:
+        reasons = [
+            found.skipped[key]
+            for key in missing
+            if key in found.skipped and "no GPMF stream" not in found.skipped[key]
+        ]
         warnings.append(
             f"{name}: no {' or '.join(missing)} samples in the GPMF track "
             "(expected the camera's accelerometer and gyroscope); video imported without IMU"
+            + (f" ({'; '.join(reasons)})" if reasons else "")
         )
         return None
-    timings = {}
+    streams = {key: found.streams[key] for key in ("ACCL", "GYRO")}
     values = {}
-    for key, part in parts.items():
-        timings[key] = stream_times(
-            part.payloads, stmp_origin_us=origin_us or 0, source=f"{name}: {key}"
-        )
-        order = part.axis_order
-        if order is None:
-            order = camera.imu_axis_order
+    for key, stream in streams.items():
+        if stream.elements != 3:
+            raise InputError(f"{name}: {key} has {stream.elements} values per sample (expected 3)")
+        order = stream.orientation_in or camera.imu_axis_order
         if order is None:
             raise InputError(
                 f"{name}: {key} has no ORIN and the camera model's axis order is unknown"
             )
-        raw = np.concatenate(part.values)
-        values[key] = raw @ cameras.body_from_file_axes(order, source=f"{name}: {key}").T
-    accel_t = np.round(timings["ACCL"].times_s * NS_PER_S).astype(np.int64)
-    gyro_t = np.round(timings["GYRO"].times_s * NS_PER_S).astype(np.int64)
+        values[key] = stream.values @ cameras.body_from_file_axes(order, source=f"{name}: {key}").T
+    accel_t = streams["ACCL"].times_ns
+    gyro_t = streams["GYRO"].times_ns
     gyro = values["GYRO"]
     accel = values["ACCL"]
     if accel_t.shape == gyro_t.shape and np.array_equal(accel_t, gyro_t):
@@ -502,43 +473,29 @@ def _read_chapter_imu(
         else:
             gyro, accel = resampled, accel[keep]
         times = base_t
-    order_text = parts["GYRO"].axis_order or camera.imu_axis_order or ""
     increasing = np.concatenate([[True], np.diff(times) > 0])
     if not increasing.all():
         warnings.append(f"{name}: {int((~increasing).sum())} IMU samples out of time order dropped")
         times, gyro, accel = times[increasing], gyro[increasing], accel[increasing]
+    gyro_stream = streams["GYRO"]
+    if times.size:
+        late_ns = int(times[0]) - int(video.pts_ns.min())
+        if late_ns > _LATE_IMU_NS:
+            warnings.append(
+                f"{name}: the IMU starts {late_ns / 1e6:.1f} ms after the first video frame "
+                "(its samples keep the camera's times; the first frames have no IMU before them)"
+            )
     return _ChapterImu(
         times_ns=times,
         gyro_rad_s=gyro,
         accel_m_s2=accel,
-        gyro_rate_hz=timings["GYRO"].rate_hz,
-        accel_rate_hz=timings["ACCL"].rate_hz,
-        axis_order=order_text,
-        axis_order_source="ORIN" if parts["GYRO"].axis_order else f"model ({camera.name})",
-        timing_method=timings["GYRO"].method,
+        gyro_rate_hz=gyro_stream.rate_hz,
+        accel_rate_hz=streams["ACCL"].rate_hz,
+        axis_order=gyro_stream.orientation_in or camera.imu_axis_order or "",
+        axis_order_source="ORIN" if gyro_stream.orientation_in else f"model ({camera.name})",
+        timing_method=gyro_stream.timing_method,
+        clock_origin=found.clock_origin,
     )
-
-
-def _add_stream(
-    part: _StreamParts, stream: GPMFStream, start_s: float, duration_s: float, name: str
-) -> None:
-    values = stream.scaled()
-    if values.ndim != 2 or values.shape[1] != 3:
-        raise InputError(
-            f"{name}: {stream.key} has {values.shape[-1]} values per sample (expected 3)"
-        )
-    part.values.append(values)
-    part.payloads.append(
-        PayloadSamples(
-            start_s=start_s,
-            duration_s=duration_s,
-            samples=stream.samples,
-            total_samples=stream.total_samples,
-            timestamp_us=stream.timestamp_us,
-        )
-    )
-    if stream.orientation_in and part.axis_order is None:
-        part.axis_order = stream.orientation_in
 
 
 # ------------------------------------------------------------------------------- camera facts
@@ -1011,6 +968,11 @@ def _write_streams(
                     "frames": written,
                     "keyframes": int(video.keyframes.sum()),
                     "imu_samples": imu_written,
+                    "imu_start_s": (
+                        None
+                        if imu is None or not imu.times_ns.size
+                        else float(imu.times_ns[0]) / 1e9
+                    ),
                     "video_bytes": video.video_bytes,
                     "finalised": video.track is not None,
                 }
@@ -1163,6 +1125,7 @@ def _session_yaml(
             "file_axis_order": first_imu.axis_order,
             "axis_order_source": first_imu.axis_order_source,
             "timing": first_imu.timing_method,
+            "clock_origin": first_imu.clock_origin,
             "resampling": (
                 "none"
                 if first_imu.gyro_rate_hz == first_imu.accel_rate_hz

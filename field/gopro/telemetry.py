@@ -16,7 +16,7 @@ Importers that also need the video use `field.gopro.mp4.read_mp4`: its video
 from __future__ import annotations
 
 import io
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -86,7 +86,12 @@ class TelemetryStream:
 
 @dataclass(frozen=True, kw_only=True)
 class GoProTelemetry:
-    """All numeric telemetry of one MP4, with what the file says about the camera."""
+    """All numeric telemetry of one MP4, with what the file says about the camera.
+
+    `payloads`: samples of the gpmd track; `corrupt_payloads`: how many of
+    them did not parse and were skipped (their samples are missing, the
+    others keep their times); `warnings`: one line per such finding.
+    """
 
     path: Path
     camera: str | None
@@ -97,6 +102,8 @@ class GoProTelemetry:
     payloads: int
     streams: dict[str, TelemetryStream] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
+    corrupt_payloads: int = 0
+    warnings: tuple[str, ...] = ()
 
     def stream(self, key: str) -> TelemetryStream:
         """The stream `key`; InputError listing what exists when it is absent."""
@@ -110,18 +117,63 @@ class GoProTelemetry:
         return self.streams[key]
 
 
+@dataclass(frozen=True, kw_only=True)
+class GPMFSample:
+    """One stored GPMF payload, not parsed yet.
+
+    `index`: its sample number in the gpmd track; `start_s` / `duration_s`:
+    its media time and declared duration (seconds; for a salvaged file
+    without a sample table, what the salvager assumes); `data`: the bytes;
+    `offset`: their position in the file (for error messages; 0 if unknown).
+    """
+
+    index: int
+    start_s: float
+    duration_s: float
+    data: bytes
+    offset: int = 0
+
+
+@dataclass(frozen=True, kw_only=True)
+class TelemetryStreams:
+    """The streams of a run of GPMF payloads (see `assemble_telemetry`)."""
+
+    streams: dict[str, TelemetryStream]
+    skipped: dict[str, str]
+    payloads: int
+    corrupt_payloads: int
+    warnings: tuple[str, ...]
+    camera: str | None
+    clock_origin: str
+
+
+def iter_gpmf_samples(mp4: MP4File) -> Iterator[GPMFSample]:
+    """Each sample of the gpmd track as stored (times from the track's sample table).
+
+    Raises `InputError` when the file has no gpmd track.
+    """
+    track = mp4.gpmf_track()
+    starts = track.decode_times / float(track.timescale)
+    durations = track.durations / float(track.timescale)
+    for index, (offset, data) in enumerate(mp4.iter_samples(track)):
+        yield GPMFSample(
+            index=index,
+            start_s=float(starts[index]),
+            duration_s=float(durations[index]),
+            data=bytes(data),
+            offset=int(offset),
+        )
+
+
 def iter_gpmf_payloads(mp4: MP4File) -> Iterator[tuple[int, float, float, GPMFPayload]]:
     """(index, start_s, duration_s, parsed payload) for each sample of the gpmd track.
 
     Times are media seconds from the gpmd track's sample table. Raises
     `InputError` when the file has no gpmd track or a payload is corrupt.
     """
-    track = mp4.gpmf_track()
-    starts = track.decode_times / float(track.timescale)
-    durations = track.durations / float(track.timescale)
-    for index, (offset, data) in enumerate(mp4.iter_samples(track)):
-        payload = parse_payload(data, source=mp4.name, base_offset=offset)
-        yield index, float(starts[index]), float(durations[index]), payload
+    for sample in iter_gpmf_samples(mp4):
+        payload = parse_payload(sample.data, source=mp4.name, base_offset=sample.offset)
+        yield sample.index, sample.start_s, sample.duration_s, payload
 
 
 def _stream_name(stream: GPMFStream, first_device: int | None) -> str:
@@ -130,21 +182,37 @@ def _stream_name(stream: GPMFStream, first_device: int | None) -> str:
     return f"{stream.key}@{stream.device_id}"
 
 
-def read_telemetry(path: Path | str, *, keys: Collection[str] | None = None) -> GoProTelemetry:
-    """Read every numeric GPMF stream of a GoPro MP4 (or only `keys`, e.g. {"ACCL"}).
+def assemble_telemetry(
+    samples: Iterable[GPMFSample], *, source: str, keys: Collection[str] | None = None
+) -> TelemetryStreams:
+    """Parse GPMF payloads and give every sample of every numeric stream its media time.
 
-    Reads only the moov index and the telemetry payloads (never the video).
-    Non-numeric streams (strings, FourCCs, dates) and streams whose structure
-    changes between payloads are left out and listed in `skipped` with why.
+    The one place where payloads become timed streams (`read_telemetry` and
+    the importer both come here). A corrupt payload is skipped and counted;
+    the others keep their times: STMP is tied to media time by the first
+    frame-locked sample of the camera's device (CORI, IORI or GRAV) *minus
+    the media start of the payload that holds it*, so losing the first
+    payload does not shift the rest; without STMP the TSMP fit works on the
+    surviving payloads' own start times. Streams of the first device are
+    named by FourCC, others `"<FourCC>@<DVID>"`; `keys` limits the result
+    (a FourCC matches every device's stream of that key).
     """
-    mp4 = read_mp4(path)
     collected: dict[str, list[tuple[int, float, float, GPMFStream]]] = {}
     first_device: int | None = None
     camera: str | None = None
     origin_us: int | None = None
+    origin_text = "none (no frame-locked stream): STMP taken as media time"
     payload_count = 0
-    for index, start_s, duration_s, payload in iter_gpmf_payloads(mp4):
+    corrupt = 0
+    first_error = ""
+    for sample in samples:
         payload_count += 1
+        try:
+            payload = parse_payload(sample.data, source=source, base_offset=sample.offset)
+        except GPMFError as error:
+            corrupt += 1
+            first_error = first_error or str(error)
+            continue
         for stream in payload.streams:
             if first_device is None:
                 first_device = stream.device_id
@@ -154,26 +222,63 @@ def read_telemetry(path: Path | str, *, keys: Collection[str] | None = None) -> 
                 and stream.key in FRAME_LOCKED_KEYS
                 and stream.samples
                 and stream.timestamp_us is not None
+                and (stream.device_id is None or stream.device_id == first_device)
             ):
                 # Its first sample is the first frame of this payload, at the payload's
                 # media time (GoPro stores each second's frames' metadata in that payload).
-                origin_us = stream.timestamp_us - round(start_s * 1e6)
+                origin_us = stream.timestamp_us - round(sample.start_s * 1e6)
+                origin_text = (
+                    f"{stream.key} STMP of payload {sample.index} minus its media start "
+                    f"{sample.start_s:.6f} s"
+                )
             name = _stream_name(stream, first_device)
             if keys is not None and name not in keys and stream.key not in keys:
                 continue
-            collected.setdefault(name, []).append((index, start_s, duration_s, stream))
+            collected.setdefault(name, []).append(
+                (sample.index, sample.start_s, sample.duration_s, stream)
+            )
+    warnings: list[str] = []
+    if corrupt:
+        warnings.append(
+            f"{source}: {corrupt} of {payload_count} GPMF payloads corrupt and skipped "
+            f"(first: {first_error})"
+        )
     streams: dict[str, TelemetryStream] = {}
     skipped: dict[str, str] = {}
     for name, parts in collected.items():
         try:
-            streams[name] = _assemble(name, parts, origin_us or 0, mp4.name)
+            streams[name] = _assemble(name, parts, origin_us or 0, source)
         except InputError as error:
             skipped[name] = str(error)
     if keys is not None:
         for key in keys:
             if key not in streams and key not in skipped:
                 present = ", ".join(sorted(collected)) or "none"
-                skipped[key] = f"{mp4.name}: no GPMF stream {key!r} (present: {present})"
+                skipped[key] = f"{source}: no GPMF stream {key!r} (present: {present})"
+    return TelemetryStreams(
+        streams=streams,
+        skipped=skipped,
+        payloads=payload_count,
+        corrupt_payloads=corrupt,
+        warnings=tuple(warnings),
+        camera=camera,
+        clock_origin=origin_text,
+    )
+
+
+def read_telemetry(path: Path | str, *, keys: Collection[str] | None = None) -> GoProTelemetry:
+    """Read every numeric GPMF stream of a GoPro MP4 (or only `keys`, e.g. {"ACCL"}).
+
+    Reads only the moov index and the telemetry payloads (never the video).
+    Non-numeric streams (strings, FourCCs, dates) and streams whose structure
+    changes between payloads are left out and listed in `skipped` with why.
+    A corrupt payload is skipped (counted in `corrupt_payloads`, said in
+    `warnings`); InputError when every payload is corrupt.
+    """
+    mp4 = read_mp4(path)
+    found = assemble_telemetry(iter_gpmf_samples(mp4), source=mp4.name, keys=keys)
+    if found.payloads and found.corrupt_payloads == found.payloads:
+        raise InputError(f"{found.warnings[0]}; no telemetry left")
     settings = global_settings(mp4)
     video_duration = 0.0
     for track in mp4.tracks:
@@ -182,14 +287,16 @@ def read_telemetry(path: Path | str, *, keys: Collection[str] | None = None) -> 
             break
     return GoProTelemetry(
         path=Path(path),
-        camera=settings.get("MINF") or camera,
+        camera=settings.get("MINF") or found.camera,
         firmware=mp4.text_atom("FIRM") or settings.get("FMWR"),
         serial=settings.get("CASN"),
         creation_time=mp4.creation_time,
         video_duration_s=video_duration,
-        payloads=payload_count,
-        streams=streams,
-        skipped=skipped,
+        payloads=found.payloads,
+        streams=found.streams,
+        skipped=found.skipped,
+        corrupt_payloads=found.corrupt_payloads,
+        warnings=found.warnings,
     )
 
 
@@ -298,16 +405,21 @@ def format_summary(telemetry: GoProTelemetry) -> str:
         )
     for name in sorted(telemetry.skipped):
         lines.append(f"{name:<12} skipped: {telemetry.skipped[name]}")
+    lines.extend(f"warning: {line}" for line in telemetry.warnings)
     return "\n".join(lines)
 
 
 __all__ = [
     "GPMFError",
+    "GPMFSample",
     "GoProTelemetry",
     "TelemetryStream",
+    "TelemetryStreams",
+    "assemble_telemetry",
     "format_summary",
     "global_settings",
     "iter_gpmf_payloads",
+    "iter_gpmf_samples",
     "read_telemetry",
     "telemetry_csv_text",
     "write_telemetry_csv",
