@@ -1,0 +1,236 @@
+"""Real dive logs through `wreckmap-field dc import`, and Subsurface's own test corpus.
+
+Two sets of real files:
+
+* every file in ../shared/data/divelogs, imported through the command line with
+  the dive counts and maximum depths expected (test42.uddf against Subsurface's own
+  reading of it, test-42-uddf-import-reference.xml);
+* the XML, SSRF and UDDF test files of Subsurface's `dives/` folder copied to
+  tests/data/subsurface-dives (its README says which and from where): each one
+  imports, with the dives and depths Subsurface itself reads where the repository
+  holds its reading, or is refused with one line naming why.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from field.divecomputer.importers import import_logbook, read_logbook
+from shared.errors import InputError
+from shared.formats.diveprofile import DiveProfile, read_dive_folder
+
+REPO = Path(__file__).resolve().parents[2]
+SHARED_DATA = REPO.parent / "shared" / "data"
+DIVELOGS = SHARED_DATA / "divelogs"
+CORPUS = REPO / "tests" / "data" / "subsurface-dives"
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def subsurface_reading(path: Path) -> list[tuple[int, float, float]]:
+    """Per divecomputer with samples in a Subsurface-written file: (samples, deepest
+    sample in m, the maximum depth Subsurface recorded in m), read with plain
+    ElementTree, independently of our importer. Subsurface writes metres ('12.3 m')."""
+    root = ET.parse(path).getroot()  # our own reference files: no entities
+    found = []
+    for dive in root.iter("dive"):
+        for computer in dive.findall("divecomputer") or [dive]:
+            depths = [float(s.get("depth", "nan").split()[0]) for s in computer.findall("sample")]
+            if not depths:
+                continue
+            summary = computer.find("depth")
+            recorded = math.nan if summary is None else float(summary.get("max", "nan").split()[0])
+            found.append((len(depths), float(np.nanmax(depths)), recorded))
+    return found
+
+
+def run_import(path: Path, out: Path) -> subprocess.CompletedProcess[str]:
+    command = [sys.executable, "-m", "field.cli", "dc", "import", str(path), "--out", str(out)]
+    return subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
+
+
+# ---------------------------------------------------------- ../shared/data/divelogs
+
+# file: maximum depth of each dive's samples in m, in start order (the dive count is
+# the length). test42.uddf is checked against Subsurface's reading instead.
+SHARED_EXPECTED = {
+    "ostc.xml": [26.097, 26.998],
+    "shearwater-perdix2-dive68.uddf": [12.5914631],
+    "shearwater-petrel3-dive88.csv": [53.6],
+    "test-42-uddf-import-reference.xml": [38.97],
+}
+
+
+def test_every_shared_divelog_is_covered() -> None:
+    names = {p.name for p in DIVELOGS.iterdir()}
+    assert names == set(SHARED_EXPECTED) | {"test42.uddf"}
+
+
+@pytest.mark.parametrize("name", sorted(SHARED_EXPECTED))
+def test_shared_divelog_through_the_cli(tmp_path: Path, name: str) -> None:
+    out = tmp_path / "dives"
+    done = run_import(DIVELOGS / name, out)
+    assert done.returncode == 0, done.stderr
+    index = json.loads((out / "dives.json").read_text())["dives"]
+    assert [entry["max_depth_m"] for entry in index] == pytest.approx(SHARED_EXPECTED[name])
+    assert done.stdout.split() == [str(out / entry["csv"]) for entry in index]
+    # A second import adds nothing and changes nothing.
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    again = run_import(DIVELOGS / name, out)
+    assert again.returncode == 0 and again.stdout == ""
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_test42_uddf_matches_subsurface_reading(tmp_path: Path) -> None:
+    reference = DIVELOGS / "test-42-uddf-import-reference.xml"
+    out = tmp_path / "dives"
+    done = run_import(DIVELOGS / "test42.uddf", out)
+    assert done.returncode == 0, done.stderr
+    ours = read_dive_folder(out)
+    theirs = subsurface_reading(reference)
+    assert len(ours) == len(theirs) == 1
+    (samples, deepest, recorded), dive = theirs[0], ours[0]
+    assert dive.stamps_s.size == samples and dive.max_depth_m == deepest
+    assert dive.max_depth_m <= recorded  # Subsurface keeps the UDDF greatestdepth, 38.99 m
+    (reference_dive,) = read_logbook(reference)
+    np.testing.assert_array_equal(dive.stamps_s, reference_dive.stamps_s)
+    np.testing.assert_array_equal(dive.depth_m, reference_dive.depth_m)
+
+
+def test_a_refused_import_leaves_the_folder_as_it_was(tmp_path: Path) -> None:
+    out = tmp_path / "dives"
+    assert run_import(DIVELOGS / "ostc.xml", out).returncode == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    # The same logbook with every date removed: no dive can be placed in time.
+    undated = tmp_path / "undated.xml"
+    text = (DIVELOGS / "ostc.xml").read_text()
+    undated.write_text(re.sub(r" date='[^']*'", "", text))
+    done = run_import(undated, out)
+    assert done.returncode == 1
+    assert done.stderr.count("\n") == 1 + done.stderr.count("WARNING")  # one error line
+    assert re.search(
+        r"undated\.xml: no importable dive \(dive 1 divecomputer 1: no date; 1 more dive",
+        done.stderr,
+    )
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+# ------------------------------------------------------ Subsurface's dives/ corpus
+
+IMPORTS = "imports"
+REFUSED = "refused"
+NO_SAMPLES = r"no importable dive \(dive \d+(?: divecomputer 1)?: no samples"
+
+# file: (IMPORTS, [(start, samples, deepest sample m), ...]) or (REFUSED, reason regex).
+# Numbers are the files' own (sample elements counted with grep); files Subsurface wrote
+# are also checked against their recorded summary below.
+CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
+    "test1.xml": (REFUSED, NO_SAMPLES),
+    "test2.xml": (REFUSED, NO_SAMPLES),
+    "test3.xml": (REFUSED, NO_SAMPLES),
+    "test4.xml": (REFUSED, NO_SAMPLES),
+    "test5.xml": (REFUSED, NO_SAMPLES),
+    "test6.xml": (REFUSED, NO_SAMPLES),
+    "test7.xml": (REFUSED, NO_SAMPLES),
+    "test8.xml": (IMPORTS, [("2011-01-01T16:00:00", 30, 30.0)]),
+    "test9.xml": (IMPORTS, [("2011-01-01T17:00:00", 30, 30.0)]),
+    "test10.xml": (REFUSED, NO_SAMPLES),
+    "test11.xml": (REFUSED, NO_SAMPLES),
+    "test12.xml": (REFUSED, NO_SAMPLES),
+    "test13.xml": (IMPORTS, [("2011-01-01T21:00:00", 30, 30.0)]),
+    "test14.xml": (IMPORTS, [("2011-01-01T22:00:00", 30, 30.0)]),
+    "test15.xml": (REFUSED, NO_SAMPLES),
+    "test18.xml": (IMPORTS, [("2011-12-02T11:00:00", 6, 70.0)]),
+    "test19.xml": (IMPORTS, [("2011-12-02T12:00:00", 7, 70.0)]),
+    "test20.xml": (IMPORTS, [("2011-12-02T13:00:00", 7, 70.0)]),
+    "test21.xml": (REFUSED, NO_SAMPLES),
+    "test22.xml": (REFUSED, NO_SAMPLES),
+    "test23.xml": (REFUSED, NO_SAMPLES + r"; 1 more dive skipped\)$"),
+    "TwoTimesTwo.ssrf": (REFUSED, NO_SAMPLES + r"; 3 more dives skipped\)$"),
+    "DL7.xml": (IMPORTS, [("2018-01-02T10:10:00", 4, 10.0)]),
+    "TestDiveDivelogsDE.xml": (IMPORTS, [("2011-05-17T11:01:00", 65, 24.69)]),
+    "TestDiveSeabearHUDC.xml": (IMPORTS, [("2009-10-10T05:32:41", 95, 40.0)]),
+    "00000023.DLF.new.xml": (IMPORTS, [("2018-09-08T11:16:52", 77, 1.8)]),
+    "test-uddf-export-events.uddf": (IMPORTS, [("2026-08-23T12:00:00", 6, 30.0)]),
+    "TestDiveDivingLog5.08.uddf": (IMPORTS, [("2011-05-17T11:01:00", 65, 24.69)]),
+    "100.xml": (REFUSED, r"XML that is neither .*\(root element <SUUNTO>; not a dive log"),
+}
+
+# The same dive written by two programs, and Subsurface's reading of the second:
+# (our reading of this file) must equal (our reading of Subsurface's file).
+SAME_DIVE = {"TestDiveDivingLog5.08.uddf": "TestDiveDivelogsDE.xml"}
+
+
+def corpus_files() -> list[str]:
+    return sorted(
+        p.name for p in CORPUS.iterdir() if p.suffix.lower() in (".xml", ".ssrf", ".uddf")
+    )
+
+
+def test_every_corpus_file_has_an_expectation() -> None:
+    assert corpus_files() == sorted(CORPUS_EXPECTED)
+
+
+@pytest.mark.parametrize("name", sorted(CORPUS_EXPECTED))
+def test_corpus_file(name: str, tmp_path: Path) -> None:
+    kind, expected = CORPUS_EXPECTED[name]
+    path = CORPUS / name
+    if kind == REFUSED:
+        with pytest.raises(InputError) as caught:
+            read_logbook(path)
+        message = str(caught.value)
+        assert message.startswith(f"{path}: ") and "\n" not in message
+        assert re.search(str(expected), message), message
+        out = tmp_path / "dives"
+        with pytest.raises(InputError):
+            import_logbook(path, out)
+        assert not out.exists()  # nothing written for a refused file
+        return
+    dives = read_logbook(path)
+    got = [(d.start_iso, int(d.stamps_s.size), d.max_depth_m) for d in dives]
+    assert [(s, n) for s, n, _ in got] == [(s, n) for s, n, _ in expected]  # type: ignore[attr-defined]
+    assert [m for _, _, m in got] == pytest.approx([m for _, _, m in expected])  # type: ignore[attr-defined]
+    assert all(np.all(np.diff(d.stamps_s) >= 0) for d in dives)
+    written = import_logbook(path, tmp_path / "dives")
+    assert len(written) == len(dives)
+
+
+def written_by_subsurface(path: Path) -> bool:
+    root = ET.parse(path).getroot()
+    return root.tag == "divelog" and root.get("program") == "subsurface"
+
+
+@pytest.mark.parametrize(
+    "name",
+    [n for n in sorted(CORPUS_EXPECTED) if CORPUS_EXPECTED[n][0] == IMPORTS and n.endswith(".xml")],
+)
+def test_corpus_matches_subsurface_summary(name: str) -> None:
+    path = CORPUS / name
+    if not written_by_subsurface(path):
+        pytest.skip("hand-written test file: no Subsurface summary to compare")
+    theirs = subsurface_reading(path)
+    ours = read_logbook(path)
+    assert [d.stamps_s.size for d in ours] == [n for n, _, _ in theirs]
+    for dive, (_, deepest, recorded) in zip(ours, theirs, strict=True):
+        assert dive.max_depth_m == pytest.approx(deepest, abs=1e-9)
+        assert dive.max_depth_m <= recorded + 0.0005  # Subsurface keeps whole millimetres
+
+
+@pytest.mark.parametrize(("name", "reference"), sorted(SAME_DIVE.items()))
+def test_corpus_same_dive_as_subsurface_read_it(name: str, reference: str) -> None:
+    ours: list[DiveProfile] = read_logbook(CORPUS / name)
+    theirs = read_logbook(CORPUS / reference)
+    assert len(ours) == len(theirs)
+    for a, b in zip(ours, theirs, strict=True):
+        assert a.start_iso == b.start_iso
+        np.testing.assert_array_equal(a.stamps_s, b.stamps_s)
+        np.testing.assert_allclose(a.depth_m, b.depth_m, atol=1e-9)
