@@ -16,7 +16,8 @@ One reader for the pose files of visual-inertial SLAM systems, beside
   stamps; or SVIn2's keyframe list `#ID, timestamp, qx, qy, qz, qw, tx, ty,
   tz`. Columns are found by their header names (`tx`/`x`, `qx`, or
   `p_<AB>_<A>_x`, `q_<AB>_x`, EuRoC's `[unit]` suffixes allowed); the others
-  (ids, velocities, biases, extrinsics) are ignored.
+  (ids, velocities, biases) are ignored, and so are fields past the named
+  ones (OKVIS appends each camera's extrinsics to a row without naming them).
 
 **Stamps.** Every stamp becomes int64 nanoseconds by integer arithmetic on
 its digits (never through a float). `format="tum"` reads `S.F` as decimal
@@ -295,9 +296,15 @@ def read_trajectory(path: Path | str, *, format: TrajectoryFormat = "auto") -> T
                 odd.append(f"{path.name}:{line_no}: not a pose or a header ({line[:60]!r})")
             continue
         fields = [f for f in _FIELD_SPLIT.split(line) if f]
-        expected = 8 if columns.count is None else columns.count
-        if len(fields) != expected:
-            odd.append(f"{path.name}:{line_no}: expected {expected} fields, found {len(fields)}")
+        if columns.count is None and len(fields) != 8:
+            odd.append(f"{path.name}:{line_no}: expected 8 fields, found {len(fields)}")
+            continue
+        # Named columns: more fields than named are fine (OKVIS appends camera extrinsics,
+        # 7 numbers per camera, that its header does not name).
+        if columns.count is not None and len(fields) < columns.count:
+            odd.append(
+                f"{path.name}:{line_no}: expected {columns.count} fields, found {len(fields)}"
+            )
             continue
         rows.append((line_no, fields))
     stamp_texts = [fields[columns.stamp] for _, fields in rows]

@@ -133,7 +133,8 @@ def test_okvis_csv_gives_body_poses_with_integer_ns(tmp_path: Path) -> None:
     lines = [OKVIS_HEADER]
     for k, stamp in enumerate(STAMPS_NS):
         sec, nsec = divmod(stamp, 10**9)
-        extra = [0.1, -0.2, 0.3, 1e-4, 2e-4, -3e-4, 0.01, 0.02, -0.03]
+        # Velocity, biases, then one camera's extrinsics, which the header does not name.
+        extra = [0.1, -0.2, 0.3, 1e-4, 2e-4, -3e-4, 0.01, 0.02, -0.03, 0.0, 0.1, 0.0, 0, 0, 0, 1]
         numbers = ", ".join(f"{v:.18e}" for v in (*truth.positions[k], *quats[k], *extra))
         lines.append(f"{sec}{nsec:09d}, {numbers}")
     path = tmp_path / "okvis.csv"
