@@ -173,12 +173,12 @@ def _header_columns(text: str) -> _Columns | None:
         frame,
         integer_ns,
     )
-    if (len(names), stamp, columns.position, columns.quat_xyzw) == (
-        8,
+    tum_order = (stamp, columns.position, columns.quat_xyzw) == (
         _TUM.stamp,
         _TUM.position,
         _TUM.quat_xyzw,
-    ):
+    )
+    if tum_order and len(names) == 8 and frame is None and not integer_ns:
         return _TUM  # the TUM header itself: its columns, nothing more
     return columns
 
@@ -283,7 +283,7 @@ def read_trajectory(path: Path | str, *, format: TrajectoryFormat = "auto") -> T
         raise InputError(f"{path.name}: cannot read trajectory ({exc})") from exc
     columns = _TUM
     rows: list[tuple[int, list[str]]] = []
-    odd: list[str] = []
+    odd: list[tuple[int, str]] = []  # (line number, why) of lines that are not poses
     for line_no, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line:
@@ -293,18 +293,16 @@ def read_trajectory(path: Path | str, *, format: TrajectoryFormat = "auto") -> T
             if named is not None and not rows:
                 columns = named
             elif not line.startswith("#"):
-                odd.append(f"{path.name}:{line_no}: not a pose or a header ({line[:60]!r})")
+                odd.append((line_no, f"not a pose or a header ({line[:60]!r})"))
             continue
         fields = [f for f in _FIELD_SPLIT.split(line) if f]
         if columns.count is None and len(fields) != 8:
-            odd.append(f"{path.name}:{line_no}: expected 8 fields, found {len(fields)}")
+            odd.append((line_no, f"expected 8 fields, found {len(fields)}"))
             continue
         # Named columns: more fields than named are fine (OKVIS appends camera extrinsics,
         # 7 numbers per camera, that its header does not name).
         if columns.count is not None and len(fields) < columns.count:
-            odd.append(
-                f"{path.name}:{line_no}: expected {columns.count} fields, found {len(fields)}"
-            )
+            odd.append((line_no, f"expected {columns.count} fields, found {len(fields)}"))
             continue
         rows.append((line_no, fields))
     stamp_texts = [fields[columns.stamp] for _, fields in rows]
@@ -314,18 +312,17 @@ def read_trajectory(path: Path | str, *, format: TrajectoryFormat = "auto") -> T
     values: list[list[float]] = []
     line_nos: list[int] = []
     for line_no, fields in rows:
-        where = f"{path.name}:{line_no}"
         try:
             stamp_ns = _parse(reading, fields[columns.stamp])
             numbers = [float(fields[i]) for i in (*columns.position, *columns.quat_xyzw)]
         except (ValueError, InvalidOperation) as exc:
-            odd.append(f"{where}: not a pose ({exc})")
+            odd.append((line_no, f"not a pose ({exc})"))
             continue
         if not all(math.isfinite(v) for v in numbers):
-            odd.append(f"{where}: non-finite value")
+            odd.append((line_no, "non-finite value"))
             continue
         if math.hypot(*numbers[3:]) < 1e-6:
-            odd.append(f"{where}: zero quaternion")
+            odd.append((line_no, "zero quaternion"))
             continue
         # Divided by its largest component first: squaring 1e200 would overflow the norm.
         largest = max(abs(v) for v in numbers[3:])
@@ -335,7 +332,8 @@ def read_trajectory(path: Path | str, *, format: TrajectoryFormat = "auto") -> T
         line_nos.append(line_no)
     warnings: list[str] = []
     if odd:
-        warnings.append(f"{len(odd)} line(s) skipped (first: {odd[0]})")
+        first_no, why = min(odd)
+        warnings.append(f"{len(odd)} line(s) skipped (first: {path.name}:{first_no}: {why})")
     if not stamps:
         raise InputError(
             f"{path.name}: no poses (expected lines '{' '.join(_TUM_COLUMNS)}' or an "
