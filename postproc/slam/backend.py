@@ -79,9 +79,20 @@ class BackendOptions:
     min_depth_m / max_depth_m: accepted landmark depth in front of each camera.
     imu_noise_inflation: multiplies the Kalibr noise densities and random walks
         (datasheet values are optimistic on a vibrating, warming diver rig).
+    min_gyroscope_random_walk / min_accelerometer_random_walk: floors on the bias random
+        walks (rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz)) after inflation. A gyro walk far below
+        the bias prior makes the bias-to-bias term of every IMU factor 1e7-1e8 times
+        stiffer than the prior, and Cholesky then declares the very first update
+        indeterminate (a RealSense's Kalibr file says 2.6e-6: ISAM2 failed at keyframe 1,
+        "Symbol: b0"). The floors sit at the best MEMS parts' values (EuRoC's ADIS16448:
+        1.9e-5 and 3e-3), below the simulator's 2e-5 and 3e-4, so calibrated consumer
+        IMUs are left as they are.
     prior_tilt_sigma_rad: first keyframe roll/pitch uncertainty (gravity from a mean
         accelerometer reading); yaw and position are fixed (they define S).
     prior_velocity_sigma_m_s: first keyframe velocity around zero (diver speeds < 1 m/s).
+    weak_velocity_sigma_m_s: a prior around zero on every later keyframe's velocity,
+        so that no state is ever without a prior of its own (0: none); at 10 m/s its
+        information is a ten-millionth of what one IMU factor gives.
     prior_accel_bias_sigma_m_s2 / prior_gyro_bias_sigma_rad_s: initial bias uncertainty.
     zero_velocity_sigma_m_s: strength of the zero-velocity constraint while still.
     landmark_prior_sigma_m: a weak prior on each new landmark at its triangulated
@@ -93,6 +104,8 @@ class BackendOptions:
     extra_iterations: additional ISAM2 updates after each keyframe.
     factorization: ISAM2's "QR" (slower, survives the poor conditioning of long
         IMU-only stretches, whose tiny bias random walks Cholesky rejects) or "CHOLESKY".
+        When a Cholesky update stays indeterminate after the rebuild, the smoother is
+        rebuilt once more with QR and keeps QR from then on (`stats.qr_fallbacks`).
     final_batch: refine the window's graph with Levenberg-Marquardt at the end.
     window_keyframes: keyframes kept in the smoother after a retirement (0: keep all,
         full smoothing, memory grows with the dive). ISAM2 takes about 5 MB per
@@ -102,6 +115,8 @@ class BackendOptions:
         elimination of the window, so it is done in steps, not per keyframe).
     anchor_*: priors on the first kept keyframe's pose, velocity and biases after a
         retirement (they stand for the retired part of the dive).
+    max_landmark_drops: a recovery that finds one more ill-posed landmark drops it too,
+        up to this many times, before it falls back to QR.
     recovery_*: weak priors put on the keyframe states GTSAM names when an ISAM2
         update finds the system indeterminate (see `_update_or_recover`); weak enough
         not to pull a well-constrained state, they only fill an unconstrained direction.
@@ -119,8 +134,11 @@ class BackendOptions:
     min_depth_m: float = 0.2
     max_depth_m: float = 40.0
     imu_noise_inflation: float = 1.0
+    min_gyroscope_random_walk: float = 1.0e-5
+    min_accelerometer_random_walk: float = 1.0e-4
     prior_tilt_sigma_rad: float = 0.03
     prior_velocity_sigma_m_s: float = 0.5
+    weak_velocity_sigma_m_s: float = 10.0
     prior_accel_bias_sigma_m_s2: float = 0.1
     prior_gyro_bias_sigma_rad_s: float = 0.01
     zero_velocity_sigma_m_s: float = 0.005
@@ -137,6 +155,7 @@ class BackendOptions:
     anchor_accel_bias_sigma_m_s2: float = 0.02
     anchor_gyro_bias_sigma_rad_s: float = 0.001
     recovery_rotation_sigma_rad: float = 0.1
+    max_landmark_drops: int = 5
     recovery_position_sigma_m: float = 1.0
     recovery_velocity_sigma_m_s: float = 0.5
     pose_graph_rotation_sigma_rad: float = 0.003
@@ -172,6 +191,7 @@ class BackendStats:
     pose_graph_loops: int = 0
     blind_keyframes: int = 0
     recovered_updates: int = 0
+    qr_fallbacks: int = 0
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -318,10 +338,15 @@ class VisualInertialBackend:
         params.setGyroscopeCovariance(
             np.eye(3) * (inflate * imu_noise.gyroscope_noise_density) ** 2
         )
-        params.setBiasAccCovariance(
-            np.eye(3) * (inflate * imu_noise.accelerometer_random_walk) ** 2
+        accel_walk = max(
+            inflate * imu_noise.accelerometer_random_walk, options.min_accelerometer_random_walk
         )
-        params.setBiasOmegaCovariance(np.eye(3) * (inflate * imu_noise.gyroscope_random_walk) ** 2)
+        gyro_walk = max(
+            inflate * imu_noise.gyroscope_random_walk, options.min_gyroscope_random_walk
+        )
+        params.setBiasAccCovariance(np.eye(3) * accel_walk**2)
+        params.setBiasOmegaCovariance(np.eye(3) * gyro_walk**2)
+        self.random_walks_used = (accel_walk, gyro_walk)
         # Integration of velocity into position: a small regulariser, as GTSAM's examples use.
         params.setIntegrationCovariance(np.eye(3) * 1e-8)
         self._preint_params = params
@@ -332,6 +357,8 @@ class VisualInertialBackend:
             gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k),
             gtsam.noiseModel.Isotropic.Sigma(2, options.pixel_sigma_px),
         )
+        self._factorization = options.factorization
+        self._last_rebuild_error: RuntimeError | None = None
         self._isam = self._new_isam()
         self._first_active = 0  # keyframes before this are retired (frozen poses)
         self._frozen_points: dict[int, FloatArray] = {}  # retired landmarks, S (3,)
@@ -361,11 +388,19 @@ class VisualInertialBackend:
         *,
         velocity_m_s: FloatArray | None = None,
         accel_bias_m_s2: FloatArray | None = None,
+        gyro_bias_rad_s: FloatArray | None = None,
+        velocity_sigma_m_s: float | None = None,
+        gyro_bias_sigma_rad_s: float | None = None,
+        position_m: FloatArray | None = None,
     ) -> None:
         """First keyframe at `stamp_ns` (IMU clock) with rotation `R_S_B` from gravity.
 
         `velocity_m_s` (in S) and `accel_bias_m_s2` come from the visual-inertial
-        alignment when it succeeded (zero otherwise); they centre the priors.
+        alignment when it succeeded (zero otherwise); `gyro_bias_rad_s` from a still
+        start (zero otherwise); they centre the priors. `velocity_sigma_m_s` and
+        `gyro_bias_sigma_rad_s` replace the options' prior sigmas (a start at rest knows
+        both far better). `position_m` places the first keyframe (default: the origin
+        of S; a new map segment starts where the last one left off).
         """
         gtsam = self.gtsam
         if self._stamps_ns:
@@ -373,6 +408,8 @@ class VisualInertialBackend:
         o = self.options
         pose = np.eye(4)
         pose[:3, :3] = session_from_body_rotation
+        if position_m is not None:
+            pose[:3, 3] = np.asarray(position_m, dtype=np.float64)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         # Pose3's tangent is [rotation, translation] in the body frame. Roll and pitch
@@ -388,20 +425,28 @@ class VisualInertialBackend:
         velocity = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, float)
         bias = gtsam.imuBias.ConstantBias(
             np.zeros(3) if accel_bias_m_s2 is None else np.asarray(accel_bias_m_s2, float),
-            np.zeros(3),
+            np.zeros(3) if gyro_bias_rad_s is None else np.asarray(gyro_bias_rad_s, float),
         )
         graph.add(
             gtsam.PriorFactorVector(
                 self._V(0),
                 velocity,
-                gtsam.noiseModel.Isotropic.Sigma(3, o.prior_velocity_sigma_m_s),
+                gtsam.noiseModel.Isotropic.Sigma(
+                    3,
+                    o.prior_velocity_sigma_m_s
+                    if velocity_sigma_m_s is None
+                    else velocity_sigma_m_s,
+                ),
             )
         )
+        gyro_sigma = o.prior_gyro_bias_sigma_rad_s
+        if gyro_bias_sigma_rad_s is not None:
+            gyro_sigma = gyro_bias_sigma_rad_s
         bias_noise = gtsam.noiseModel.Diagonal.Sigmas(
             np.concatenate(
                 [
                     np.full(3, o.prior_accel_bias_sigma_m_s2),
-                    np.full(3, o.prior_gyro_bias_sigma_rad_s),
+                    np.full(3, gyro_sigma),
                 ]
             )
         )
@@ -423,7 +468,7 @@ class VisualInertialBackend:
         isam_params = gtsam.ISAM2Params()
         isam_params.setRelinearizeThreshold(self.options.relinearize_threshold)
         isam_params.relinearizeSkip = 1
-        isam_params.setFactorization(self.options.factorization)
+        isam_params.setFactorization(self._factorization)
         return gtsam.ISAM2(isam_params)
 
     @property
@@ -478,6 +523,14 @@ class VisualInertialBackend:
         values.insert(X(k), gtsam.Pose3(pose_guess))
         values.insert(V(k), vel_guess)
         values.insert(B(k), self._biases[-1])
+        if o.weak_velocity_sigma_m_s > 0:
+            graph.add(
+                gtsam.PriorFactorVector(
+                    V(k),
+                    np.zeros(3),
+                    gtsam.noiseModel.Isotropic.Sigma(3, o.weak_velocity_sigma_m_s),
+                )
+            )
         if still:
             self.stats.still_keyframes += 1
             graph.add(
@@ -549,14 +602,39 @@ class VisualInertialBackend:
                 ) from error
             first_error = error
         LOG.warning("ISAM2 update %s): %s; rebuilding", where, gtsam_reason(first_error))
-        try:
-            self._rebuild_after_failure(graph, values, factors_before, symbol)
-        except RuntimeError as error:
-            raise StageError(
-                f"visual-inertial backend failed {where}, {len(self._landmarks)} landmarks) "
-                f"even after recovery: {gtsam_reason(error)} (first: {gtsam_reason(first_error)})"
-            ) from error
-        self.stats.recovered_updates += 1
+        if self._rebuild_dropping_landmarks(graph, values, factors_before, symbol):
+            self.stats.recovered_updates += 1
+            return
+        # Cholesky gives up on systems that are only badly scaled; QR does not.
+        if self._factorization != "QR":
+            LOG.warning("ISAM2 rebuild %s): rebuilding with QR factorisation from now on", where)
+            self._factorization = "QR"
+            self.stats.qr_fallbacks += 1
+            if self._rebuild_dropping_landmarks(graph, values, factors_before, symbol):
+                self.stats.recovered_updates += 1
+                return
+        error = self._last_rebuild_error
+        raise StageError(
+            f"visual-inertial backend failed {where}, {len(self._landmarks)} landmarks) "
+            f"even after recovery: {gtsam_reason(error)} (first: {gtsam_reason(first_error)})"
+        ) from error
+
+    def _rebuild_dropping_landmarks(
+        self, graph: Any, values: Any, factors_before: int, symbol: tuple[str, int]
+    ) -> bool:
+        """`_rebuild_after_failure`, again for each further landmark GTSAM names (up to
+        `max_landmark_drops`); False when it still fails (`_last_rebuild_error` says why)."""
+        for _ in range(self.options.max_landmark_drops + 1):
+            try:
+                self._rebuild_after_failure(graph, values, factors_before, symbol)
+                return True
+            except RuntimeError as error:
+                self._last_rebuild_error = error
+                named = indeterminate_symbol(error)
+                if named is None or named[0] != "l":
+                    return False
+                symbol = named
+        return False
 
     def _rebuild_after_failure(
         self, graph: Any, values: Any, factors_before: int, symbol: tuple[str, int]
@@ -689,6 +767,31 @@ class VisualInertialBackend:
             ) from error
         self.stats.loop_closures += 1
         self._refresh_recent(self.num_keyframes - 1)
+
+    def abandon(self) -> list[KeyframeState]:
+        """States of every keyframe that was added successfully, for a smoother that failed.
+
+        The keyframe of the failed update is dropped; the others get ISAM2's estimate
+        where it can still give one, else their last pulled values. The backend takes no
+        further keyframes after this (the estimator starts a new map segment).
+        """
+        while len(self._stamps_ns) > max(self.stats.keyframes, 1):
+            self._stamps_ns.pop()
+            self._poses.pop()
+            self._velocities.pop()
+            self._biases.pop()
+        try:
+            estimate = self._isam.calculateEstimate()
+            for k in range(self._first_active, self.num_keyframes):
+                self._poses[k] = estimate.atPose3(self._X(k)).matrix()
+                self._velocities[k] = np.asarray(estimate.atVector(self._V(k)))
+                self._biases[k] = estimate.atConstantBias(self._B(k))
+            self._estimate = estimate
+        except RuntimeError as error:  # the failed smoother cannot say: keep what was pulled
+            LOG.warning("failed smoother: keeping the last pulled states (%s)", gtsam_reason(error))
+            self._landmarks = set()
+            self._estimate = self.gtsam.Values()
+        return self.keyframe_states()
 
     def keyframe_states(self) -> list[KeyframeState]:
         """Current estimates of every keyframe (after `finish`, the final ones)."""

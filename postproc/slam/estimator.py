@@ -11,6 +11,7 @@ camera-clock stamps of the images they belong to.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -19,7 +20,9 @@ import numpy as np
 from postproc.slam.backend import BackendOptions, KeyframeState, VisualInertialBackend
 from postproc.slam.initialization import (
     AlignmentResult,
+    ImuStillness,
     align_visual_inertial,
+    imu_stillness,
     is_still,
     mean_specific_force,
     preintegrate,
@@ -32,6 +35,8 @@ from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
 from shared.calibration.kalibr import ImuNoise
 from shared.errors import StageError
 from shared.geometry import make_pose, so3_exp, so3_log
+
+LOG = logging.getLogger(__name__)
 
 
 @dataclass(kw_only=True)
@@ -53,6 +58,19 @@ class EstimatorOptions:
     init_min_condition: smallest accepted conditioning of the alignment (scale observable).
     init_max_s: after this long without a good alignment, start from rest (v = 0): a
         hovering diver never gives scale, and waiting forever would lose the start.
+    rest_window_s: length of the IMU windows that `initialization.imu_stillness`
+        judges around the first keyframe. When the body rests there and the next
+        keyframe's images agree (no derotated flow: the IMU alone cannot tell rest from a
+        glide at constant velocity), the backend starts at rest: gravity, the gyro bias
+        and the accelerometer bias along gravity from the still IMU, zero velocity held
+        to `rest_velocity_sigma_m_s`. A start in motion waits for the alignment instead.
+    rest_max_gyro_std_rad_s / rest_max_accel_std_m_s2: the spread of the IMU samples
+        below which the body counts as resting (see `imu_stillness`).
+    rest_lookback_s: a rest that ended up to this long before the first keyframe (a
+        recording that starts at rest, the camera's first frame coming later) still
+        starts the estimate: the IMU carries the rest's attitude and zero velocity to the
+        first keyframe, the velocity sigma growing by `rest_velocity_growth_m_s2` per
+        second (a 0.01 rad tilt error is 0.1 m/s^2; an accelerometer bias as much).
     still_max_flow_px: median feature motion (frontend pixels) between keyframes, with
         the gyro-predicted rotation removed, below which the camera counts as not
         translating (zero-velocity update).
@@ -76,6 +94,12 @@ class EstimatorOptions:
     init_min_parallax_deg: float = 2.0
     init_min_condition: float = 1e-3
     init_max_s: float = 5.0
+    rest_window_s: float = 0.5
+    rest_max_gyro_std_rad_s: float = 0.01
+    rest_max_accel_std_m_s2: float = 0.1
+    rest_velocity_sigma_m_s: float = 0.02
+    rest_lookback_s: float = 2.0
+    rest_velocity_growth_m_s2: float = 0.2
     blind_keyframe_interval_s: float = 5.0
 
 
@@ -106,6 +130,17 @@ class SlamResult:
     stats: dict[str, float | int | str | dict[str, int]]
 
 
+@dataclass
+class _Segment:
+    """A map segment whose smoother failed for good: its keyframe states and landmarks."""
+
+    first_keyframe: int  # global keyframe index of its keyframe 0
+    states: list[KeyframeState]
+    landmark_ids: IntArray
+    landmarks_s: FloatArray
+    counters: dict[str, int]
+
+
 class SlamEstimator:
     """Keyframe visual-inertial SLAM on already tracked features."""
 
@@ -124,9 +159,13 @@ class SlamEstimator:
         self.imu = imu
         self.imu_from_cam = np.asarray(imu_from_cam, dtype=np.float64)
         self.selector = KeyframeSelector(options.keyframes)
-        self.backend = VisualInertialBackend(
-            options.backend, focal_px=focal_px, imu_from_cam=imu_from_cam, imu_noise=imu_noise
-        )
+        self._focal_px = float(focal_px)
+        self._imu_noise = imu_noise
+        self.backend = self._new_backend()
+        self._segments: list[_Segment] = []
+        self._segment_start = 0  # global keyframe index of the backend's keyframe 0
+        self._segment_failures: list[str] = []
+        self._init_failures: list[str] = []
         self._shift_ns = round(options.timeshift_cam_imu_s * 1e9)
         self._frame_stamps: list[int] = []
         self._keyframe_frame_index: list[int] = []
@@ -144,6 +183,14 @@ class SlamEstimator:
         self._last_kf_blind = False
         self._last_kf_imu_ns = 0
         self._blind_skipped = 0  # keyframes the selector asked for while blind, not made
+
+    def _new_backend(self) -> VisualInertialBackend:
+        return VisualInertialBackend(
+            self.options.backend,
+            focal_px=self._focal_px,
+            imu_from_cam=self.imu_from_cam,
+            imu_noise=self._imu_noise,
+        )
 
     def process(
         self,
@@ -179,44 +226,116 @@ class SlamEstimator:
         self._reasons[decision.reason] = self._reasons.get(decision.reason, 0) + 1
         still = bool(self._keyframe_frame_index) and self._still_since_last_keyframe(frame, imu_ns)
         keyframe = _BufferedKeyframe(imu_ns, frame.track_ids, frame.xy_normalised, still)
+        self._keyframe_frame_index.append(len(self._frame_stamps) - 1)
         if self.backend.num_keyframes == 0:
             self._buffer.append(keyframe)
             self._try_start()
         else:
-            self.backend.add_keyframe(
-                imu_ns, self.imu, frame.track_ids, frame.xy_normalised, still=still
-            )
-        self._keyframe_frame_index.append(len(self._frame_stamps) - 1)
+            self._add_to_backend(keyframe)
         if describe is not None and self.options.loop_closure.enabled:
             rows, descriptors = describe()
             index = len(self._keyframe_frame_index) - 1
             self.loops.add_keyframe(
                 index, frame.stamp_ns, frame.track_ids[rows], frame.xy_normalised[rows], descriptors
             )
-            if index < self.backend.num_keyframes:
+            if (
+                self.backend.num_keyframes
+                and index < self._segment_start + self.backend.num_keyframes
+            ):
                 self._close_loops(index)
         self._last_kf_xy = dict(zip(frame.track_ids.tolist(), frame.xy_normalised, strict=True))
         return decision
 
+    def _add_to_backend(self, keyframe: _BufferedKeyframe) -> None:
+        """Add a keyframe to the running smoother; a new map segment if it fails for good."""
+        try:
+            self.backend.add_keyframe(
+                keyframe.imu_ns,
+                self.imu,
+                keyframe.track_ids,
+                keyframe.xy_normalised,
+                still=keyframe.still,
+            )
+        except StageError as error:
+            self._start_new_segment(keyframe, error)
+
+    def _start_new_segment(self, keyframe: _BufferedKeyframe, error: StageError) -> None:
+        """Close the failed smoother's segment and start a new one at `keyframe`.
+
+        The new segment starts from the IMU prediction of the last good state (its pose
+        pinned there, so the trajectory stays continuous in S; tilt, velocity and biases
+        under their usual priors), then tracks and triangulates afresh.
+        """
+        import gtsam
+
+        old = self.backend
+        states = old.abandon()
+        ids, points = old.landmarks()
+        self._segments.append(
+            _Segment(
+                first_keyframe=self._segment_start,
+                states=states,
+                landmark_ids=ids,
+                landmarks_s=points,
+                counters=_backend_counters(old),
+            )
+        )
+        when_s = (keyframe.imu_ns - self._imu_start_ns) * 1e-9
+        self._segment_failures.append(f"{when_s:.2f} s: {error}")
+        LOG.warning(
+            "smoother failed %.2f s into the IMU data (%s); starting map segment %d there",
+            when_s,
+            error,
+            len(self._segments) + 1,
+        )
+        last = states[-1]
+        bias = gtsam.imuBias.ConstantBias(last.accel_bias_m_s2, last.gyro_bias_rad_s)
+        pim = old.preintegrate(self.imu, last.stamp_ns, keyframe.imu_ns, bias)
+        nav = pim.predict(
+            gtsam.NavState(gtsam.Pose3(last.session_from_body), last.velocity_m_s), bias
+        )
+        pose = nav.pose().matrix()
+        self._segment_start = self._segment_start + len(states)
+        self.backend = self._new_backend()
+        self.backend.start(
+            keyframe.imu_ns,
+            pose[:3, :3],
+            keyframe.track_ids,
+            keyframe.xy_normalised,
+            velocity_m_s=np.asarray(nav.velocity()),
+            accel_bias_m_s2=last.accel_bias_m_s2,
+            gyro_bias_rad_s=last.gyro_bias_rad_s,
+            position_m=pose[:3, 3],
+        )
+
     def _close_loops(self, index: int) -> None:
-        """Verify loop candidates for keyframe `index`; add the first verified one."""
+        """Verify loop candidates for keyframe `index` (global); add the first verified one.
+
+        Only keyframes of the running map segment are candidates (the smoother holds
+        no states of the earlier ones).
+        """
         backend = self.backend
+        start = self._segment_start
         o = self.options.loop_closure
         if self.loop_closures and index - self.loop_closures[-1][1] < o.min_keyframes_between_loops:
             return
-        poses = backend.cached_poses()  # gating only needs metres, not millimetres
+        # Gating only needs metres, not millimetres.
+        poses = [s.session_from_body for seg in self._segments for s in seg.states]
+        poses += backend.cached_poses()
         for old in self.loops.candidates(index, poses):
+            if old < start:
+                continue
             loop = self.loops.verify(
                 old,
                 index,
-                old_session_from_body=backend.session_from_body(old),
+                old_session_from_body=backend.session_from_body(old - start),
                 landmark=backend.landmark_position,
             )
             if loop is None:
                 continue
             backend.add_loop(
-                old,
-                index,
+                old - start,
+                index - start,
                 loop.old_from_new,
                 rotation_sigma_rad=o.rotation_sigma_rad,
                 translation_sigma_m=o.translation_sigma_m,
@@ -226,40 +345,168 @@ class SlamEstimator:
             return
 
     def _try_start(self, *, force: bool = False) -> None:
-        """Align the buffered keyframes with the IMU; start the backend when it succeeds."""
+        """Start the backend at the first buffered keyframe once the start is known.
+
+        At rest (the IMU around it is still): at once, gravity and gyro bias from the
+        still IMU, zero velocity. In motion: when the visual-inertial alignment of the
+        buffered keyframes succeeds, or, after `init_max_s` (or `force`), from rest with
+        a loose velocity prior. A start that fails (no gravity in the IMU, a
+        smoother that cannot take it) drops that keyframe and is retried at the next.
+        """
+        try:
+            started = self._start_from_buffer(force=force)
+        except (StageError, RuntimeError) as error:  # gtsam raises RuntimeError
+            dropped = self._buffer.pop(0)
+            when_s = (dropped.imu_ns - self._imu_start_ns) * 1e-9
+            self._init_failures.append(f"{when_s:.2f} s: {error}")
+            LOG.warning(
+                "initialisation %.2f s into the IMU data failed (%s); retrying at the "
+                "next keyframe",
+                when_s,
+                error,
+            )
+            self._keyframe_frame_index.pop(len(self._keyframe_frame_index) - 1 - len(self._buffer))
+            self.backend = self._new_backend()
+            # Keyframe indices shifted: the loop detector starts afresh.
+            self.loops = LoopDetector(
+                self.options.loop_closure, focal_px=self._focal_px, imu_from_cam=self.imu_from_cam
+            )
+            if self._buffer and force:
+                self._try_start(force=True)
+            return
+        if started:
+            buffered, self._buffer = self._buffer[1:], []
+            for kf in buffered:
+                self._add_to_backend(kf)
+
+    def _start_from_buffer(self, *, force: bool) -> bool:
+        """Start the backend at the first buffered keyframe if the start is known."""
         o = self.options
         first = self._buffer[0]
-        accel = mean_specific_force(self.imu, first.imu_ns, o.gravity_window_s)
-        R_S_B0 = session_from_body_rotation(accel)
         span_s = (self._buffer[-1].imu_ns - first.imu_ns) * 1e-9
-        alignment = None
-        if len(self._buffer) >= o.init_min_keyframes and not all(k.still for k in self._buffer[1:]):
-            alignment = self._align(R_S_B0)
-        accepted = alignment is not None and alignment.condition >= o.init_min_condition
-        if not accepted and not force and span_s < o.init_max_s:
-            return
-        velocity = alignment.velocity_m_s if accepted and alignment else np.zeros(3)
-        bias = alignment.accel_bias_m_s2 if accepted and alignment else np.zeros(3)
-        self.init_report = {
-            "init": "visual-inertial alignment" if accepted else "from rest",
-            "init_keyframes": len(self._buffer),
-            "init_span_s": span_s,
-            "init_condition": alignment.condition if alignment else 0.0,
-            "init_speed_m_s": float(np.linalg.norm(velocity)),
-        }
-        self.backend.start(
-            first.imu_ns,
-            R_S_B0,
-            first.track_ids,
-            first.xy_normalised,
-            velocity_m_s=velocity,
-            accel_bias_m_s2=bias,
-        )
-        for kf in self._buffer[1:]:
-            self.backend.add_keyframe(
-                kf.imu_ns, self.imu, kf.track_ids, kf.xy_normalised, still=kf.still
+        found = self._last_rest(first.imu_ns)
+        if found is not None and found[1] >= first.imu_ns:
+            # The IMU cannot tell rest from a smooth glide at constant velocity: the
+            # images must agree (the next keyframe's derotated flow is below
+            # `still_max_flow_px`) before the start is taken as at rest.
+            if len(self._buffer) < 2:
+                return False
+            if not self._buffer[1].still:
+                found = None
+        if found is not None:
+            rest, rest_end_ns = found
+            # At rest the accelerometer reads gravity plus its bias: the bias along
+            # gravity is the norm's excess (a RealSense reads 10.1 m/s^2).
+            up_body = rest.accel_mean_m_s2 / np.linalg.norm(rest.accel_mean_m_s2)
+            accel_bias = (
+                float(np.linalg.norm(rest.accel_mean_m_s2)) - o.backend.gravity_m_s2
+            ) * up_body
+            R_S_B0, velocity, sigma_v = self._propagate_rest(
+                rest, rest_end_ns, first.imu_ns, accel_bias
             )
-        self._buffer = []
+            before_s = max(first.imu_ns - rest_end_ns, 0) * 1e-9
+            self.init_report = {
+                "init": "at rest (still IMU)"
+                if before_s == 0
+                else "at rest (still IMU), propagated to the first keyframe",
+                "init_keyframes": len(self._buffer),
+                "init_span_s": span_s,
+                "init_rest_s": rest.duration_s,
+                "init_rest_before_first_keyframe_s": before_s,
+                "init_gyro_bias_rad_s": float(np.linalg.norm(rest.gyro_mean_rad_s)),
+                "init_accel_bias_along_gravity_m_s2": float(np.linalg.norm(accel_bias)),
+                "init_speed_m_s": float(np.linalg.norm(velocity)),
+            }
+            self.backend.start(
+                first.imu_ns,
+                R_S_B0,
+                first.track_ids,
+                first.xy_normalised,
+                velocity_m_s=velocity,
+                accel_bias_m_s2=accel_bias,
+                gyro_bias_rad_s=rest.gyro_mean_rad_s,
+                velocity_sigma_m_s=sigma_v,
+                gyro_bias_sigma_rad_s=rest.gyro_bias_sigma_rad_s,
+            )
+        else:
+            accel = mean_specific_force(self.imu, first.imu_ns, o.gravity_window_s)
+            R_S_B0 = session_from_body_rotation(accel)
+            alignment = None
+            if len(self._buffer) >= o.init_min_keyframes and not all(
+                k.still for k in self._buffer[1:]
+            ):
+                alignment = self._align(R_S_B0)
+            accepted = alignment is not None and alignment.condition >= o.init_min_condition
+            if not accepted and not force and span_s < o.init_max_s:
+                return False
+            velocity = alignment.velocity_m_s if accepted and alignment else np.zeros(3)
+            bias = alignment.accel_bias_m_s2 if accepted and alignment else np.zeros(3)
+            self.init_report = {
+                "init": "visual-inertial alignment" if accepted else "from rest",
+                "init_keyframes": len(self._buffer),
+                "init_span_s": span_s,
+                "init_condition": alignment.condition if alignment else 0.0,
+                "init_speed_m_s": float(np.linalg.norm(velocity)),
+            }
+            self.backend.start(
+                first.imu_ns,
+                R_S_B0,
+                first.track_ids,
+                first.xy_normalised,
+                velocity_m_s=velocity,
+                accel_bias_m_s2=bias,
+            )
+        return True
+
+    def _last_rest(self, first_ns: int) -> tuple[ImuStillness, int] | None:
+        """The latest still IMU window ending within `rest_lookback_s` before `first_ns`
+        (or reaching `rest_window_s` past it), with its end (IMU clock); None if none."""
+        o = self.options
+        w_ns = round(o.rest_window_s * 1e9)
+        step_ns = 100_000_000
+        end_ns = min(first_ns + w_ns, self._imu_end_ns)
+        while end_ns >= first_ns - round(o.rest_lookback_s * 1e9):
+            rest = imu_stillness(
+                self.imu,
+                end_ns - w_ns,
+                end_ns,
+                max_gyro_std_rad_s=o.rest_max_gyro_std_rad_s,
+                max_accel_std_m_s2=o.rest_max_accel_std_m_s2,
+                min_duration_s=0.8 * o.rest_window_s,  # the IMU may start inside the window
+            )
+            if rest.still:
+                return rest, min(end_ns, first_ns) if end_ns >= first_ns else end_ns
+            end_ns -= step_ns
+        return None
+
+    def _propagate_rest(
+        self, rest: ImuStillness, rest_end_ns: int, first_ns: int, accel_bias_m_s2: FloatArray
+    ) -> tuple[FloatArray, FloatArray, float]:
+        """`R_S_B`, velocity (S) and its sigma at the first keyframe, dead-reckoned from rest.
+
+        At rest the attitude comes from gravity and the velocity is zero; the IMU then
+        carries both to the first keyframe (with the gyro bias the rest measured). The
+        result is turned about z so the first keyframe keeps S's zero yaw.
+        """
+        import gtsam
+
+        o = self.options
+        R_rest = session_from_body_rotation(rest.accel_mean_m_s2)
+        if rest_end_ns >= first_ns:
+            return R_rest, np.zeros(3), o.rest_velocity_sigma_m_s
+        bias = gtsam.imuBias.ConstantBias(accel_bias_m_s2, rest.gyro_mean_rad_s)
+        pim = self.backend.preintegrate(self.imu, rest_end_ns, first_ns, bias)
+        nav = pim.predict(
+            gtsam.NavState(gtsam.Pose3(make_pose(R_rest, np.zeros(3))), np.zeros(3)), bias
+        )
+        R = nav.pose().rotation().matrix()
+        axis = R[:, 0] if abs(R[2, 0]) <= 0.95 else R[:, 1]
+        yaw = float(np.arctan2(axis[1], axis[0]))
+        c, s_ = np.cos(-yaw), np.sin(-yaw)
+        R_z = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        dt_s = (first_ns - rest_end_ns) * 1e-9
+        sigma = o.rest_velocity_sigma_m_s + o.rest_velocity_growth_m_s2 * dt_s
+        return R_z @ R, R_z @ np.asarray(nav.velocity()), sigma
 
     def _align(self, R_S_B0: FloatArray) -> AlignmentResult | None:
         """Linear alignment of the buffered keyframes (None without enough parallax)."""
@@ -333,48 +580,66 @@ class SlamEstimator:
         )
 
     def finish(self) -> SlamResult:
-        """Final optimisation; keyframe and frame-rate poses in S, landmarks."""
-        backend = self.backend
+        """Final optimisation; keyframe and frame-rate poses in S, landmarks.
+
+        Raises StageError (saying when and why) when fewer than two keyframes have
+        states: nothing to make a trajectory of.
+        """
         if self._buffer:
             self._try_start(force=True)
-        if backend.num_keyframes < 2:
+        backend = self.backend
+        total = sum(len(seg.states) for seg in self._segments) + backend.num_keyframes
+        if total < 2:
+            reasons = "; ".join(self._init_failures[-2:] + self._segment_failures[-2:])
+            span = ""
+            if self._frame_stamps:
+                span = (
+                    f" over {len(self._frame_stamps)} frames "
+                    f"({self._frame_stamps[0]} to {self._frame_stamps[-1]} ns, camera clock)"
+                )
             raise StageError(
-                f"only {backend.num_keyframes} keyframe(s): the sequence is too short or no "
-                "frame overlaps the IMU data"
+                f"only {total} keyframe(s){span}: the sequence is too short or no frame "
+                "overlaps the IMU data" + (f" (initialisation: {reasons})" if reasons else "")
             )
-        backend.finish()
-        states = backend.keyframe_states()
-        kf_stamps_cam = np.array(
-            [self._frame_stamps[i] for i in self._keyframe_frame_index], dtype=np.int64
-        )
+        if backend.num_keyframes:
+            backend.finish()
+        states = [s for seg in self._segments for s in seg.states] + backend.keyframe_states()
+        kf_index = self._keyframe_frame_index[: len(states)]
+        first_frame = kf_index[0]
+        kf_stamps_cam = np.array([self._frame_stamps[i] for i in kf_index], dtype=np.int64)
         kf_poses = np.array([s.session_from_body for s in states])
-        frame_poses = self._frame_poses(states)
-        ids, points = backend.landmarks()
+        frame_poses = self._frame_poses(states, kf_index)
+        ids_parts = [seg.landmark_ids for seg in self._segments]
+        point_parts = [seg.landmarks_s for seg in self._segments]
+        if backend.num_keyframes:
+            ids_now, points_now = backend.landmarks()
+            ids_parts.append(ids_now)
+            point_parts.append(points_now)
+        ids = np.concatenate(ids_parts).astype(np.int64)
+        points = np.concatenate([p.reshape(-1, 3) for p in point_parts])
+        counters = _backend_counters(backend)
+        for seg in self._segments:
+            for key, value in seg.counters.items():
+                counters[key] += value
         stats: dict[str, float | int | str | dict[str, int]] = {
-            "frames": len(self._frame_stamps),
-            "keyframes": backend.num_keyframes,
+            "frames": len(self._frame_stamps) - first_frame,
+            "frames_before_start": first_frame,
+            "keyframes": len(states),
             "landmarks": len(ids),
-            "projection_factors": backend.stats.projection_factors,
-            "still_keyframes": backend.stats.still_keyframes,
-            "rejected_triangulations": backend.stats.rejected_triangulations,
-            "gated_observations": backend.stats.gated_observations,
-            "loop_closures": backend.stats.loop_closures,
-            "pose_graph_loops": backend.stats.pose_graph_loops,
-            "retired_keyframes": backend.stats.retired_keyframes,
-            "frozen_landmarks": backend.stats.frozen_landmarks,
-            "window_rebuilds": backend.stats.window_rebuilds,
-            "blind_keyframes": backend.stats.blind_keyframes,
-            "recovered_updates": backend.stats.recovered_updates,
+            **counters,
             "blind_keyframes_skipped": self._blind_skipped,
             "loop_attempts": self.loops.attempts,
             "keyframe_reasons": dict(self._reasons),
+            "map_segments": len(self._segments) + (1 if backend.num_keyframes else 0),
+            "segment_failures": "; ".join(self._segment_failures),
+            "init_failures": "; ".join(self._init_failures),
             **self.init_report,
             "final_accel_bias_m_s2": float(np.linalg.norm(states[-1].accel_bias_m_s2)),
             "final_gyro_bias_rad_s": float(np.linalg.norm(states[-1].gyro_bias_rad_s)),
         }
         return SlamResult(
-            frame_stamps_ns=np.array(self._frame_stamps, dtype=np.int64),
-            session_from_body=frame_poses,
+            frame_stamps_ns=np.array(self._frame_stamps[first_frame:], dtype=np.int64),
+            session_from_body=frame_poses[first_frame:],
             keyframe_stamps_ns=kf_stamps_cam,
             keyframe_session_from_body=kf_poses,
             keyframe_session_from_cam=kf_poses @ self.imu_from_cam,
@@ -383,23 +648,22 @@ class SlamEstimator:
             stats=stats,
         )
 
-    def _frame_poses(self, states: list[KeyframeState]) -> FloatArray:
+    def _frame_poses(self, states: list[KeyframeState], kf_idx: list[int]) -> FloatArray:
         """T_S_B at every frame: IMU prediction from the previous keyframe, its end error
         spread linearly over the interval so the trajectory passes through every keyframe."""
         import gtsam
 
         backend = self.backend
         poses = np.zeros((len(self._frame_stamps), 4, 4))
-        kf_idx = self._keyframe_frame_index
         for j, start in enumerate(kf_idx):
             end = kf_idx[j + 1] if j + 1 < len(kf_idx) else len(self._frame_stamps) - 1
             state = states[j]
             nav = gtsam.NavState(gtsam.Pose3(state.session_from_body), state.velocity_m_s)
-            bias = backend.bias_of(j)
+            bias = gtsam.imuBias.ConstantBias(state.accel_bias_m_s2, state.gyro_bias_rad_s)
             t0 = self._frame_stamps[start] + self._shift_ns
             predicted = []
             for f in range(start, end + 1):
-                t = self._frame_stamps[f] + self._shift_ns
+                t = min(self._frame_stamps[f] + self._shift_ns, self._imu_end_ns)
                 pim = backend.preintegrate(self.imu, t0, t, bias)
                 predicted.append(pim.predict(nav, bias).pose().matrix())
             if j + 1 < len(kf_idx):
@@ -418,3 +682,22 @@ class SlamEstimator:
                 for n, f in enumerate(range(start, end + 1)):
                     poses[f] = predicted[n]
         return poses
+
+
+def _backend_counters(backend: VisualInertialBackend) -> dict[str, int]:
+    """The smoother's counters that add up over map segments (for stats.json)."""
+    s = backend.stats
+    return {
+        "projection_factors": s.projection_factors,
+        "still_keyframes": s.still_keyframes,
+        "rejected_triangulations": s.rejected_triangulations,
+        "gated_observations": s.gated_observations,
+        "loop_closures": s.loop_closures,
+        "pose_graph_loops": s.pose_graph_loops,
+        "retired_keyframes": s.retired_keyframes,
+        "frozen_landmarks": s.frozen_landmarks,
+        "window_rebuilds": s.window_rebuilds,
+        "blind_keyframes": s.blind_keyframes,
+        "recovered_updates": s.recovered_updates,
+        "qr_fallbacks": s.qr_fallbacks,
+    }

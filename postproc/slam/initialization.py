@@ -15,6 +15,7 @@ keyframe's body x axis points along +x of S when projected on the horizontal.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,6 +76,78 @@ def mean_specific_force(imu: ImuSamples, start_ns: int, window_s: float) -> Floa
         R = R @ so3_exp(w * d)
     result: FloatArray = total / dt.sum()
     return result
+
+
+@dataclass
+class ImuStillness:
+    """What the IMU says about the body around a time: at rest or not, and what rest gives.
+
+    still: the gyro and accelerometer hardly vary over the window (see `imu_stillness`).
+    duration_s: IMU time the statistics cover (s).
+    gyro_mean_rad_s (3,): mean angular rate; at rest, the gyro bias (plus Earth's
+        7.3e-5 rad/s, which is below every consumer gyro's bias uncertainty).
+    gyro_std_rad_s / accel_std_m_s2: largest per-axis standard deviation of the samples.
+    accel_mean_m_s2 (3,): mean specific force (at rest: gravity, up, in the body frame).
+    gyro_bias_sigma_rad_s: uncertainty of `gyro_mean_rad_s` as a bias: the standard
+        error of the mean, floored (a hand-held "rest" still turns a little).
+    """
+
+    still: bool
+    duration_s: float
+    gyro_mean_rad_s: FloatArray
+    gyro_std_rad_s: float
+    accel_mean_m_s2: FloatArray
+    accel_std_m_s2: float
+    gyro_bias_sigma_rad_s: float
+
+
+def imu_stillness(
+    imu: ImuSamples,
+    start_ns: int,
+    end_ns: int,
+    *,
+    max_gyro_std_rad_s: float = 0.02,
+    max_accel_std_m_s2: float = 0.15,
+    max_gyro_rad_s: float = 0.1,
+    min_duration_s: float = 0.5,
+    gyro_bias_floor_rad_s: float = 1.0e-3,
+    chunk_s: float = 0.25,
+) -> ImuStillness:
+    """Whether the body rests over [start_ns, end_ns] (IMU clock, cut to the IMU data).
+
+    Rest is judged from the samples' spread, not from a noise model (Kalibr files
+    often carry inflated or optimistic densities): a body at rest, even held in a
+    hand, shows gyro deviations of a few mrad/s and accelerometer deviations of a few
+    cm/s^2; walking, turning or swimming shows 0.1-1 rad/s and 0.3-3 m/s^2. The
+    mean rate must also be small (a steady turn has a small spread too). Fewer than
+    `min_duration_s` of IMU data is never called still. The spreads are taken over
+    `chunk_s` pieces and the largest counts, so that a window whose last quarter
+    second already moves is not diluted into "still" by the rest before it.
+    """
+    stamps = imu.stamps_ns
+    inside = (stamps >= start_ns) & (stamps <= end_ns)
+    n = int(inside.sum())
+    if n < 3:
+        return ImuStillness(False, 0.0, np.zeros(3), np.inf, np.zeros(3), np.inf, np.inf)
+    times = stamps[inside]
+    duration_s = float(times[-1] - times[0]) * 1e-9
+    gyro = imu.gyro_rad_s[inside]
+    accel = imu.accel_m_s2[inside]
+    gyro_mean = gyro.mean(axis=0)
+    pieces = max(int(duration_s / chunk_s), 1)
+    edges = np.linspace(0, n, pieces + 1).astype(int)
+    gyro_std = max(float(gyro[a:b].std(axis=0).max()) for a, b in itertools.pairwise(edges))
+    accel_std = max(float(accel[a:b].std(axis=0).max()) for a, b in itertools.pairwise(edges))
+    still = (
+        duration_s >= min_duration_s
+        and gyro_std <= max_gyro_std_rad_s
+        and accel_std <= max_accel_std_m_s2
+        and float(np.linalg.norm(gyro_mean)) <= max_gyro_rad_s
+    )
+    sigma = max(3.0 * gyro_std / np.sqrt(n), gyro_bias_floor_rad_s)
+    return ImuStillness(
+        bool(still), duration_s, gyro_mean, gyro_std, accel.mean(axis=0), accel_std, sigma
+    )
 
 
 def is_still(
