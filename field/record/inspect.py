@@ -6,6 +6,10 @@ nominal period is the median interval), and the relation of the two clocks in th
 `log_time - header.stamp` (host receive minus sensor time: the latency plus the clock
 offset), its mean and spread, and its drift in ppm (slope of a line fit over the
 recording). A drift of tens of ppm is the device clock's; jumps show as a large spread.
+
+The recorder's own events on /health are listed as they were recorded: sources lost and
+back (with the gap), and wall-clock steps (the recorded times stay monotonic; the event
+says how the wall clock moved against them).
 """
 
 from __future__ import annotations
@@ -15,8 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
-from shared.archive import ArchiveReader, Imu
+from shared.archive import HEALTH_TOPIC, ArchiveReader, Imu, RecorderEvent
 from shared.errors import InputError
 
 
@@ -49,6 +54,17 @@ class TopicReport:
 
 
 @dataclass
+class HealthEvent:
+    """One recorder event from /health: `kind` (see shared.archive.EVENT_KINDS), the
+    source or topic concerned, host time (ns), and its details (times ns, lengths s)."""
+
+    kind: str
+    source: str
+    stamp_ns: int
+    details: dict[str, Any]
+
+
+@dataclass
 class InspectReport:
     """One file."""
 
@@ -61,6 +77,17 @@ class InspectReport:
     topics: list[TopicReport]
     metadata: dict[str, dict[str, str]]
     warnings: list[str] = field(default_factory=list)
+    events: list[HealthEvent] = field(default_factory=list)
+
+    @property
+    def clock_steps(self) -> list[HealthEvent]:
+        """The wall-clock steps the recorder saw."""
+        return [e for e in self.events if e.kind == "clock_step"]
+
+    @property
+    def source_gaps(self) -> list[HealthEvent]:
+        """Sources or streams that came back after a loss (`details['gap_s']`)."""
+        return [e for e in self.events if e.kind == "source_back"]
 
     def as_dict(self) -> dict[str, Any]:
         doc = asdict(self)
@@ -117,7 +144,22 @@ def inspect_file(path: Path | str) -> InspectReport:
     with ArchiveReader(target, salvage=partial) as reader:
         topics = reader.topics()
         reports = []
+        events = []
         for topic, info in topics.items():
+            if topic == HEALTH_TOPIC and info.schema_name == RecorderEvent.ROS_TYPE_NAME:
+                for _, _, message in reader.messages([topic]):
+                    if not isinstance(message, RecorderEvent):
+                        continue
+                    try:
+                        details = yaml.safe_load(message.yaml_text) or {}
+                    except yaml.YAMLError:
+                        details = {"text": message.yaml_text}
+                    if not isinstance(details, dict):
+                        details = {"text": message.yaml_text}
+                    events.append(
+                        HealthEvent(message.kind, message.frame_id, message.stamp_ns, details)
+                    )
+                continue
             if info.schema_name == Imu.ROS_TYPE_NAME:
                 series = reader.read_imu(topic)
                 stamps, logs = series.stamps_ns, series.log_times_ns
@@ -138,6 +180,7 @@ def inspect_file(path: Path | str) -> InspectReport:
             topics=reports,
             metadata=reader.metadata(),
             warnings=list(reader.warnings),
+            events=events,
         )
 
 
@@ -174,5 +217,21 @@ def format_report(report: InspectReport) -> str:
         )
         if t.stamps_backwards:
             lines.append(f"  {t.topic}: {t.stamps_backwards} header stamps go backwards")
+    for event in report.events:
+        at = (event.stamp_ns - report.first_ns) * 1e-9
+        if event.kind == "source_back":
+            gap = event.details.get("gap_s", float("nan"))
+            lines.append(f"gap: {event.source} back after {gap:.2f} s (at +{at:.2f} s)")
+        elif event.kind == "source_lost":
+            why = event.details.get("reason", "")
+            lines.append(f"lost: {event.source} at +{at:.2f} s ({why})")
+        elif event.kind == "clock_step":
+            step = event.details.get("step_s", float("nan"))
+            lines.append(
+                f"clock step: host wall clock {step:+.3f} s at +{at:.2f} s "
+                "(recorded times unaffected)"
+            )
+        else:
+            lines.append(f"{event.kind}: {event.source} at +{at:.2f} s {event.details}")
     lines += [f"warning: {w}" for w in report.warnings[:10]]
     return "\n".join(lines)

@@ -33,9 +33,17 @@ from typing import Any, Protocol
 
 import yaml
 
+from field.record.hostclock import CLOCK_STEP_NS, HOST_CLOCK
 from field.record.sources.base import CameraSource, SourceSample
 from field.record.timing import ClockFit
-from shared.archive import SESSION_TOPIC, ArchiveWriter, CompressedVideo, SessionInfo
+from shared.archive import (
+    HEALTH_TOPIC,
+    SESSION_TOPIC,
+    ArchiveWriter,
+    CompressedVideo,
+    RecorderEvent,
+    SessionInfo,
+)
 from shared.archive.writer import Compression
 from shared.errors import DeviceError, InputError, OutputExistsError, WreckmapError
 from shared.fsutil import write_text_atomic
@@ -126,11 +134,13 @@ class SampleQueue:
         self.peak_items = 0
         self.peak_bytes = 0
 
-    def put(self, sample: SourceSample) -> bool:
-        """Append `sample`; False (and nothing stored) when the queue is full."""
+    def put(self, sample: SourceSample, *, force: bool = False) -> bool:
+        """Append `sample`; False (and nothing stored) when the queue is full, unless
+        `force` (the recorder's own few events are never dropped)."""
         size = sample.size_bytes
         with self._cond:
-            if len(self._items) >= self._max_items or self._bytes + size > self._max_bytes:
+            full = len(self._items) >= self._max_items or self._bytes + size > self._max_bytes
+            if full and not force:
                 return False
             self._items.append(sample)
             self._bytes += size
@@ -160,7 +170,15 @@ class SampleQueue:
 
 
 class _TopicStats:
-    __slots__ = ("count", "dropped", "rate_hz", "skip_until_key", "window_count")
+    __slots__ = (
+        "count",
+        "dropped",
+        "last_receive_ns",
+        "rate_hz",
+        "silent_since_ns",
+        "skip_until_key",
+        "window_count",
+    )
 
     def __init__(self) -> None:
         self.count = 0
@@ -168,6 +186,8 @@ class _TopicStats:
         self.rate_hz = 0.0
         self.window_count = 0
         self.skip_until_key = False
+        self.last_receive_ns = 0
+        self.silent_since_ns = 0  # > 0 while the stream is reported silent
 
 
 class Recorder:
@@ -207,6 +227,11 @@ class Recorder:
         self._file_started = 0.0
         self._started_ns = 0
         self._health: dict[str, Any] = {}
+        self._clock = HOST_CLOCK
+        self._wall_minus_host_ns = 0
+        self._clock_steps: list[dict[str, Any]] = []
+        self._lost_at_ns: dict[str, int] = {}
+        self._stream_rates = {s.topic: s.rate_hz for src in self.sources for s in src.streams()}
         topics = [s.topic for src in self.sources for s in src.streams()]
         duplicates = sorted({t for t in topics if topics.count(t) > 1})
         if duplicates:
@@ -224,6 +249,16 @@ class Recorder:
         """The last health snapshot (rates, drops, disk, sources), as published."""
         return dict(self._health)
 
+    def _record_event(self, kind: str, source: str, details: dict[str, Any]) -> None:
+        """Write a `RecorderEvent` on /health (through the queue, never dropped)."""
+        now = self._clock.now_ns()
+        event = RecorderEvent(
+            stamp_ns=now, frame_id=source, kind=kind, yaml_text=yaml.safe_dump(details)
+        )
+        with self._stats_lock:
+            self._stats.setdefault(HEALTH_TOPIC, _TopicStats())
+        self._queue.put(SourceSample(HEALTH_TOPIC, event, now), force=True)
+
     def _event(self, text: str, level: int = logging.WARNING) -> None:
         log.log(level, "%s", text)
         stamp = datetime.now(UTC).strftime("%H:%M:%S")
@@ -240,7 +275,8 @@ class Recorder:
             source.open()  # DeviceError here: nothing is written
             self._source_up[source.name] = True
         self.session_dir.mkdir(parents=True, exist_ok=True)
-        self._started_ns = time.time_ns()
+        self._started_ns = self._clock.now_ns()
+        self._wall_minus_host_ns = self._clock.wall_minus_host_ns()
         self._write_calibration()
         self._write_session_yaml(final=False)
         pumps = [
@@ -270,7 +306,7 @@ class Recorder:
                     self._drain_and_close()
                 except OSError as error:
                     clean = self._disk_error(error)
-        duration_s = (time.time_ns() - self._started_ns) * 1e-9
+        duration_s = (self._clock.now_ns() - self._started_ns) * 1e-9
         report = RecordReport(
             session_dir=self.session_dir,
             files=list(self._files),
@@ -295,7 +331,7 @@ class Recorder:
             events = self._events[-5:]
         self._health = {
             **self._health,
-            "t_ns": time.time_ns(),
+            "t_ns": self._clock.now_ns(),
             "session": self.session_id,
             "rig": self.options.rig,
             "state": "stopped",
@@ -338,12 +374,25 @@ class Recorder:
                     continue
                 opened = True
                 self._source_up[source.name] = True
-                self._event(f"{source.name}: reconnected, recording resumed")
+                back_ns = self._clock.now_ns()
+                lost_ns = self._lost_at_ns.pop(source.name, back_ns)
+                gap_s = round((back_ns - lost_ns) * 1e-9, 3)
+                self._record_event(
+                    "source_back",
+                    source.name,
+                    {"lost_ns": lost_ns, "back_ns": back_ns, "gap_s": gap_s},
+                )
+                self._event(f"{source.name}: reconnected after {gap_s:.1f} s, recording resumed")
             try:
                 samples = source.read(0.1)
                 failures = 0
             except DeviceError as error:
                 self._source_up[source.name] = False
+                lost_ns = self._clock.now_ns()
+                self._lost_at_ns[source.name] = lost_ns
+                self._record_event(
+                    "source_lost", source.name, {"lost_ns": lost_ns, "reason": str(error)}
+                )
                 self._event(f"{source.name}: lost ({error}); other streams go on, retrying")
                 source.close()
                 opened = False
@@ -365,6 +414,16 @@ class Recorder:
         if stats is None:
             with self._stats_lock:
                 stats = self._stats.setdefault(sample.topic, _TopicStats())
+        previous_ns, stats.last_receive_ns = stats.last_receive_ns, sample.receive_ns
+        if stats.silent_since_ns:
+            stats.silent_since_ns = 0
+            gap_s = round((sample.receive_ns - previous_ns) * 1e-9, 3)
+            self._record_event(
+                "source_back",
+                sample.topic,
+                {"lost_ns": previous_ns, "back_ns": sample.receive_ns, "gap_s": gap_s},
+            )
+            self._event(f"{sample.topic}: samples again after a {gap_s:.1f} s gap", logging.INFO)
         if stats.skip_until_key and not sample.keyframe:
             stats.dropped += 1
             return
@@ -443,7 +502,8 @@ class Recorder:
         self._files.append(path)
         self._file_started = time.monotonic()
         self._writer.write(
-            SESSION_TOPIC, SessionInfo(time.time_ns(), self._session_yaml_text(final=False))
+            SESSION_TOPIC,
+            SessionInfo(self._clock.now_ns(), self._session_yaml_text(final=False)),
         )
         self._writer.flush(fsync=self.options.fsync)
         log.info("recording to %s", path)
@@ -481,7 +541,42 @@ class Recorder:
 
     # -- health --------------------------------------------------------------------
 
+    def _check_streams_and_clock(self) -> None:
+        """Report streams gone silent (a camera unplugged while the IMU flows, a stalled
+        device) and wall-clock steps, on /health and in the log."""
+        now = self._clock.now_ns()
+        for topic, rate_hz in self._stream_rates.items():
+            stats = self._stats.get(topic)
+            if stats is None or not stats.count or rate_hz <= 0 or stats.silent_since_ns:
+                continue
+            silent_s = (now - stats.last_receive_ns) * 1e-9
+            if silent_s > max(1.0, 5.0 / rate_hz):
+                stats.silent_since_ns = stats.last_receive_ns
+                self._record_event(
+                    "source_lost",
+                    topic,
+                    {"lost_ns": stats.last_receive_ns, "reason": f"no sample for {silent_s:.1f} s"},
+                )
+                self._event(f"{topic}: no sample for {silent_s:.1f} s; the other streams go on")
+        offset_ns = self._clock.wall_minus_host_ns()
+        step_ns = offset_ns - self._wall_minus_host_ns
+        if abs(step_ns) > CLOCK_STEP_NS:
+            self._wall_minus_host_ns = offset_ns
+            entry = {
+                "host_ns": now,
+                "wall_ns": now + offset_ns,
+                "step_s": round(step_ns * 1e-9, 6),
+                "wall_minus_host_s": round(offset_ns * 1e-9, 6),
+            }
+            self._clock_steps.append(entry)
+            self._record_event("clock_step", "", entry)
+            self._event(
+                f"host wall clock stepped {step_ns * 1e-9:+.3f} s; recorded times stay "
+                "monotonic (wall = host + {:.3f} s)".format(offset_ns * 1e-9)
+            )
+
     def _update_health(self, window_s: float) -> None:
+        self._check_streams_and_clock()
         try:
             free = shutil.disk_usage(self.session_dir).free
         except OSError:
@@ -499,10 +594,10 @@ class Recorder:
             events = self._events[-5:]
         writer = self._writer
         self._health = {
-            "t_ns": time.time_ns(),
+            "t_ns": self._clock.now_ns(),
             "session": self.session_id,
             "rig": self.options.rig,
-            "uptime_s": round((time.time_ns() - self._started_ns) * 1e-9, 1),
+            "uptime_s": round((self._clock.now_ns() - self._started_ns) * 1e-9, 1),
             "file": writer.path.name if writer is not None else "",
             "file_bytes": writer.bytes_written if writer is not None else 0,
             "files": len(self._files),
@@ -576,12 +671,13 @@ class Recorder:
             "recordings": [p.name for p in self._files],
         }
         if final and report is not None:
-            doc["end_utc"] = _iso(time.time_ns())
+            doc["end_utc"] = _iso(self._clock.now_ns())
             doc["stop_reason"] = report.stop_reason
             doc["clean"] = report.clean
             doc["messages"] = report.messages
             doc["dropped"] = report.dropped
             doc["events"] = report.events[-50:]
+            doc["clock_steps"] = list(self._clock_steps)
         return "# wreckmap session (written by wreckmap-field record)\n" + yaml.safe_dump(
             doc, sort_keys=False, default_flow_style=False
         )
@@ -589,8 +685,9 @@ class Recorder:
     def _clock_doc(self) -> dict[str, Any]:
         doc: dict[str, Any] = {
             "host": {
-                "description": "MCAP log time: host wall clock (CLOCK_REALTIME) when a sample "
-                "was received, ns since the epoch",
+                "description": "MCAP log time: host time when a sample was received, ns "
+                "since the epoch: the wall clock read at start carried by the monotonic clock "
+                "(never steps); wall-clock steps are on /health and under clock_steps",
             }
         }
         for device, fits in sorted(self._fits.items()):

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from field.record.hostclock import host_now_ns
 from field.record.sources.base import SourceSample, StreamInfo, register_source
 from field.record.timing import DeviceClockMapper
 from shared.archive import (
@@ -96,9 +97,9 @@ def timedelta_ns(value: datetime.timedelta) -> int:
 def steady_to_epoch_offset_ns() -> int:
     """Epoch minus steady clock now (DepthAI's host timestamps use std::chrono::steady_clock,
     which is CLOCK_MONOTONIC on Linux, like `time.monotonic_ns`)."""
-    a = time.time_ns()
+    a = host_now_ns()
     m = time.monotonic_ns()
-    b = time.time_ns()
+    b = host_now_ns()
     return (a + b) // 2 - m
 
 
@@ -293,7 +294,7 @@ class OakSource:
                     raise DeviceError("OAK: pipeline stopped (device unplugged or crashed)")
                 for kind, topic, queue in self._queues:
                     messages = queue.tryGetAll()
-                    receive_ns = time.time_ns()
+                    receive_ns = host_now_ns()
                     for m in messages:
                         if kind == "camera":
                             out.append(self._frame(m, topic, receive_ns))

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from field.record.hostclock import host_now_ns
 from field.record.sources.base import SourceSample, StreamInfo, register_source
 from field.record.timing import DeviceClockMapper
 from shared.archive import (
@@ -384,7 +385,7 @@ class SimSource:
     def open(self) -> None:
         if self._opened_at_ns is None:
             self._load_clip()  # seconds to minutes the first time (rendering)
-            now = time.time_ns()
+            now = host_now_ns()
             self._opened_at_ns = now
             # Device clock: ns since boot, running drift_ppm fast (true time = host epoch here).
             boot_ns = now - round(self.options.boot_s_ago * 1e9)
@@ -392,7 +393,7 @@ class SimSource:
                 offset_ns=-boot_ns, drift_ppm=self.options.clock_drift_ppm, reference_ns=boot_ns
             )
             self._start_true_ns = now + 20_000_000
-        now = time.time_ns()
+        now = host_now_ns()
         if self._in_fault(now, "device_lost"):
             raise DeviceError("simulated rig: device not found (simulated unplug)")
         # A real device restarts its stream where the present is: skip what was missed.
@@ -404,9 +405,9 @@ class SimSource:
     def read(self, timeout_s: float) -> list[SourceSample]:
         if not self._is_open:
             raise DeviceError("simulated rig: read before open")
-        deadline = time.time_ns() + round(timeout_s * 1e9)
+        deadline = host_now_ns() + round(timeout_s * 1e9)
         while True:
-            now = time.time_ns()
+            now = host_now_ns()
             if self._in_fault(now, "device_lost"):
                 self._is_open = False
                 raise DeviceError("simulated rig: device lost (simulated unplug)")
