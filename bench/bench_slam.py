@@ -5,6 +5,7 @@ Usage:
                                          [--width 640] [--seed 1]
                                          [--render-width 960 --render-height 540 --fps 30]
     .venv/bin/python bench/bench_slam.py --long [--long-minutes 45] [--window 300]
+    .venv/bin/python bench/bench_slam.py --real [--only handheld_a karma ...] [--width PX]
 
 `--long`: a 45-minute feature-level dive (the diver sweeps the 40 m wreck side
 back and forth, so features never run out); prints the process RSS and the
@@ -16,6 +17,21 @@ that the sliding-window smoother keeps both flat, then the ATE.
 2. Rendered surveys (field.sim, the same simulator `wreckmap-field sim survey`
    runs; rendered once into --work and reused): the whole stage, images to
    trajectory, as the CLI runs it.
+
+`--real`: every real recording of ../shared/data (handheld_a, euroc_mh01_cam0
+through the visual-only path, both GoPro clips, imported first) through the
+slam stage's `run` with its default options. No truth for most, so it prints
+consistency: images tracked (frames in trajectory.tum / images), keyframes,
+tracking failures (frames below `min_tracks_ok` tracks) and whatever else
+stats.json says about lost tracking, the real-time factor (wall clock and per
+CPU second), the fastest keyframe-to-keyframe speed, and the Sim(3) ATE of
+our keyframe camera centres against an independent COLMAP reconstruction of
+the same keyframe images (pycolmap: intrinsics fixed to the SLAM's
+calibration, SIFT, sequential matching, incremental mapper, largest model),
+as a percentage of our keyframe path. For euroc_mh01_cam0 also the Sim(3) ATE
+of the visual-only body path against the Leica prism positions (the 15 cm
+prism lever arm is not removed: the path's scale is arbitrary). A recording
+that fails is a row with its error.
 
 Printed per sequence: path length, ATE RMSE after SE(3) alignment (metres and
 % of the distance travelled; target <= 1 %, goal 0.5 %), the Sim(3) scale,
@@ -29,10 +45,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
+import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from field.sim.survey import SurveyOptions
@@ -43,6 +63,7 @@ from postproc.slam.frontend import FrontendOptions
 from postproc.slam.stage import SlamOptions
 from postproc.slam.stage import run as run_slam
 from postproc.slam.synthetic import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
+from postproc.slam.types import FloatArray
 from postproc.slam.visual_only import VisualOnlyEstimator
 from shared.errors import StageError
 from shared.formats.euroc import read_euroc
@@ -264,6 +285,255 @@ def rendered(
             )
 
 
+# ------------------------------------------------------------------ real recordings
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@dataclass(frozen=True)
+class RealRecording:
+    """One real recording: what to run slam on and how (`prepare` imports GoPro clips)."""
+
+    name: str
+    source: Path
+    use_imu: bool = True
+    gopro: bool = False
+    leica: Path | None = None
+
+
+def real_recordings(shared: Path) -> list[RealRecording]:
+    """Every real recording of ../shared/data that slam can be run on."""
+    realvi = shared / "realvi"
+    mh01 = realvi / "euroc_mh01_cam0"
+    return [
+        RealRecording("handheld_a", realvi / "handheld_a"),
+        RealRecording(
+            "euroc_mh01_cam0",
+            mh01,
+            use_imu=False,
+            leica=mh01 / "groundtruth_leica_prism_position_window.txt",
+        ),
+        RealRecording("karma", shared / "gopro" / "karma.mp4", gopro=True),
+        RealRecording("max-heromode", shared / "gopro" / "max-heromode.mp4", gopro=True),
+    ]
+
+
+def _import_gopro(video: Path, work: Path) -> Path:
+    """Import a GoPro clip with the field CLI (both samples were filmed in air)."""
+    session = work / f"session_{video.stem}"
+    if (session / "recording.mcap").is_file():
+        return session
+    env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
+    command = [sys.executable, "-m", "field.cli", "gopro", "import", str(video)]
+    done = subprocess.run(
+        [*command, "--out", str(session), "--medium", "air"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"gopro import failed: {done.stderr.strip().splitlines()[-1:]}")
+    return session
+
+
+def colmap_keyframe_poses(slam_dir: Path, work: Path) -> tuple[dict[int, FloatArray], int]:
+    """An independent COLMAP reconstruction of a SLAM result's keyframe images.
+
+    Intrinsics fixed to the SLAM's calibration (calib/camchain.yaml), SIFT on the
+    full images, sequential matching (10 neighbours, quadratic overlap), COLMAP's
+    incremental mapper; the largest model is kept. Returns (stamp_ns -> `T_W_C` of
+    every registered keyframe, keyframes given).
+    """
+    import shutil
+
+    import pycolmap
+
+    from postproc.sfm.database import KeyframeSet, write_database
+    from postproc.sfm.features import FeatureOptions, extract_features
+    from postproc.sfm.refine import camera_poses
+    from shared.calibration.kalibr import read_camchain
+
+    camera = read_camchain(slam_dir / "calib" / "camchain.yaml")[0].camera
+    if work.exists():
+        shutil.rmtree(work)
+    image_dir = work / "images"
+    image_dir.mkdir(parents=True)
+    width, height = int(camera.width), int(camera.height)
+    names = []
+    for path in sorted((slam_dir / "keyframes").glob("*.png")):
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        # Decoded H.264 frames can keep the coded size (854 -> 864 px wide): the
+        # calibrated image is the top-left width x height.
+        if image is None or image.shape[0] < height or image.shape[1] < width:
+            continue
+        cv2.imwrite(str(image_dir / path.name), image[:height, :width])
+        names.append(path.name)
+    pycolmap.logging.minloglevel = 2  # errors only: the table is the output
+    n = len(names)
+    keyframes = KeyframeSet(
+        names=names,
+        sources=[image_dir / name for name in names],
+        session=np.zeros(n, dtype=np.int64),
+        camera=np.zeros(n, dtype=np.int64),
+        stamps_ns=np.array([int(name.removesuffix(".png")) for name in names], dtype=np.int64),
+        world_from_cam=np.tile(np.eye(4), (n, 1, 1)),
+        placed=np.zeros(n, dtype=bool),
+        prior_sigma_m=np.ones(n),
+    )
+    database = work / "database.db"
+    write_database(database, [camera], keyframes, with_priors=False)
+    longest = max(width, height)
+    features = FeatureOptions(max_num_features=4096, max_image_size_px=longest)
+    extract_features(database, image_dir, names, features, longest_side_px=longest)
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = 10
+    pairing.loop_detection = False
+    pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
+    pipeline = pycolmap.IncrementalPipelineOptions()
+    pipeline.ba_refine_focal_length = False
+    pipeline.ba_refine_principal_point = False
+    pipeline.ba_refine_extra_params = False
+    pipeline.random_seed = 0
+    pipeline.extract_colors = False
+    models = pycolmap.incremental_mapping(database, image_dir, work / "sparse", options=pipeline)
+    if not models:
+        return {}, n
+    best = max(models.values(), key=lambda r: r.num_reg_images())
+    poses = {int(name.removesuffix(".png")): T for name, T in camera_poses(best).items()}
+    return poses, n
+
+
+def _leica(path: Path) -> Trajectory:
+    """Leica prism positions (`t_s x y z`, seconds) as a trajectory with no rotation."""
+    stamps: list[int] = []
+    positions: list[list[float]] = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        t, *xyz = line.split()
+        seconds, _, fraction = t.partition(".")
+        stamps.append(int(seconds) * 1_000_000_000 + int((fraction + "000000000")[:9]))
+        positions.append([float(v) for v in xyz])
+    poses = np.tile(np.eye(4), (len(stamps), 1, 1))
+    poses[:, :3, 3] = positions
+    return Trajectory(np.array(stamps, dtype=np.int64), poses)
+
+
+def _path_m(positions: FloatArray) -> float:
+    return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
+
+
+def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict[str, object]:
+    """slam (the stage's `run`), then the consistency figures; a failure is a row."""
+    from postproc.slam.inputs import open_input
+
+    row: dict[str, object] = {"recording": recording.name}
+    try:
+        source = _import_gopro(recording.source, work) if recording.gopro else recording.source
+        row["images"] = open_input(source).frame_count
+        out = work / f"slam_{recording.name}"
+        frontend = FrontendOptions() if width is None else FrontendOptions(width_px=width)
+        options = SlamOptions(frontend=frontend, use_imu=recording.use_imu)
+        started = time.monotonic()
+        run_slam(options, source, out, overwrite=True)
+        row["run_s"] = time.monotonic() - started
+    except Exception as error:  # a bench row, not a crash
+        row["error"] = f"{type(error).__name__}: {error}"
+        return row
+    stats = json.loads((out / "stats.json").read_text())
+    row.update(
+        frames=stats.get("frames"),
+        keyframes=stats.get("keyframes"),
+        tracking_failures=stats.get("tracking_failures"),
+        rtf=stats.get("real_time_factor"),
+        rtf_cpu=stats.get("real_time_factor_cpu"),
+        mode=stats.get("mode", "visual-inertial" if recording.use_imu else "visual-only"),
+        gyro_check=stats.get("gyro_check"),
+    )
+    # Whatever else the stage says about losing and regaining track.
+    for key in ("tracking_losses", "map_segments", "segments", "reinitialisations"):
+        if key in stats:
+            row[key] = stats[key]
+    keyframes = read_tum(out / "keyframes.tum")
+    trajectory = read_tum(out / "trajectory.tum")
+    speeds = np.linalg.norm(np.diff(keyframes.positions, axis=0), axis=1) / np.maximum(
+        np.diff(keyframes.stamps_ns) * 1e-9, 1e-9
+    )
+    row["max_keyframe_speed_m_s"] = float(speeds.max()) if len(speeds) else float("nan")
+    try:
+        colmap, given = colmap_keyframe_poses(out, work / f"colmap_{recording.name}")
+        row["colmap_registered"] = f"{len(colmap)}/{given}"
+        if len(colmap) >= 3:
+            stamps = np.array(sorted(colmap), dtype=np.int64)
+            theirs = Trajectory(stamps, np.array([colmap[s] for s in stamps]))
+            result = ate(theirs, keyframes, align="sim3", max_dt_ns=1000)
+            ours = keyframes.positions[np.searchsorted(keyframes.stamps_ns, result.stamps_ns)]
+            row["colmap_ate_pct"] = 100.0 * result.rmse_m / _path_m(ours)
+            row["colmap_ate_m"] = result.rmse_m
+    except Exception as error:  # a bench row, not a crash
+        row["colmap_error"] = f"{type(error).__name__}: {error}"
+    if recording.leica is not None:
+        leica = _leica(recording.leica).slice_time(
+            int(trajectory.stamps_ns[0]), int(trajectory.stamps_ns[-1])
+        )
+        ours = trajectory.interpolate(leica.stamps_ns)
+        result = ate(ours, leica, align="sim3", max_dt_ns=1000)
+        row["leica_ate_m"] = result.rmse_m
+        row["leica_ate_pct"] = 100.0 * result.rmse_m / leica.path_length_m()
+        row["leica_path_m"] = leica.path_length_m()
+    return row
+
+
+def _format_real(row: dict[str, object]) -> str:
+    def number(key: str, spec: str) -> str:
+        value = row.get(key)
+        return format(value, spec) if isinstance(value, (int, float)) else "-"
+
+    if "error" in row:
+        return f"{row['recording']:<16} FAILED: {row['error']}"
+    frames, images = row.get("frames"), row.get("images")
+    coverage = (
+        f"{100.0 * frames / images:5.1f} %"
+        if isinstance(frames, int) and isinstance(images, int) and images
+        else "-"
+    )
+    text = (
+        f"{row['recording']:<16} frames {frames}/{images} ({coverage})  kf {row.get('keyframes')}"
+        f"  tracking failures {row.get('tracking_failures')}  RTF {number('rtf', '.2f')}"
+        f" (per CPU s {number('rtf_cpu', '.2f')})  max kf speed "
+        f"{number('max_keyframe_speed_m_s', '.2f')} m/s\n{'':<16} "
+        f"COLMAP registered {row.get('colmap_registered', '-')}, Sim(3) ATE "
+        f"{number('colmap_ate_pct', '.2f')} % of the path ({number('colmap_ate_m', '.3f')})"
+    )
+    if "colmap_error" in row:
+        text += f" COLMAP FAILED: {row['colmap_error']}"
+    if "leica_ate_m" in row:
+        text += (
+            f"\n{'':<16} Leica prism Sim(3) ATE {number('leica_ate_m', '.3f')} m = "
+            f"{number('leica_ate_pct', '.2f')} % of {number('leica_path_m', '.1f')} m"
+        )
+    extra = {k: row[k] for k in ("tracking_losses", "map_segments", "segments") if k in row}
+    text += f"\n{'':<16} mode: {row.get('mode')}; gyro check {row.get('gyro_check')} {extra or ''}"
+    return text
+
+
+def real(work: Path, *, width: int | None, only: list[str] | None) -> None:
+    """The consistency table over every real recording (see the module docstring)."""
+    print(
+        f"-- real recordings (../shared/data), frontend width "
+        f"{'stage default' if width is None else f'{width} px'}, {os.cpu_count()} CPUs, "
+        f"load average {os.getloadavg()[0]:.1f}",
+        flush=True,
+    )
+    for recording in real_recordings(SHARED_DATA):
+        if only and recording.name not in only:
+            continue
+        row = run_real(recording, work / "real", width=width)
+        print(_format_real(row), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -278,12 +548,20 @@ def main() -> None:
     parser.add_argument("--render-height", type=int, default=360)
     parser.add_argument("--fps", type=float, default=15.0, help="rendered frame rate, Hz")
     parser.add_argument("--long", action="store_true", help="only the long-dive memory run")
+    parser.add_argument("--real", action="store_true", help="only the real recordings")
+    parser.add_argument(
+        "--only", nargs="*", help="with --real: these recordings (handheld_a, karma, ...)"
+    )
     parser.add_argument("--long-minutes", type=float, default=45.0)
     parser.add_argument("--window", type=int, default=300, help="smoother window, keyframes")
     args = parser.parse_args()
     os.environ.setdefault("WRECKMAP_PROGRESS", "0")
     if args.long:
         long_dive(args.long_minutes, args.window)
+        return
+    if args.real:
+        width = args.width if "--width" in sys.argv else None
+        real(args.work, width=width, only=args.only)
         return
     args.work.mkdir(parents=True, exist_ok=True)
     feature_level(args.duration, [0, 1, 2])
