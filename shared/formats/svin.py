@@ -57,9 +57,10 @@ unless more than one and more than 1 % of the poses are (then the stamps are
 being misread, and InputError says so). Quaternions are normalised.
 
 **Frames.** `pose_frame` is what the header says the poses are of: `body`
-for `p_WS`/`p_WB`/`p_RS` columns (OKVIS's S and EuRoC's S are the IMU
-sensor, our body frame), `camera` for `p_WC`; None when the file does not
-say (TUM columns, SVIn2's files).
+for `p_WS`/`p_WB`/`p_RS` columns, `camera` for `p_WC`; None when the file
+does not say (TUM columns, SVIn2's files). S is the sensor the file is of:
+the IMU (our body frame) in OKVIS's output and in EuRoC's
+`state_groundtruth_estimate0`, but the Vicon marker in EuRoC's `vicon0`.
 """
 
 from __future__ import annotations
