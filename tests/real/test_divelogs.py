@@ -163,11 +163,55 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     "test-uddf-export-events.uddf": (IMPORTS, [("2026-08-23T12:00:00", 6, 30.0)]),
     "TestDiveDivingLog5.08.uddf": (IMPORTS, [("2011-05-17T11:01:00", 65, 24.69)]),
     "100.xml": (REFUSED, r"XML that is neither .*\(root element <SUUNTO>; not a dive log"),
+    "test0.xml": (REFUSED, NO_SAMPLES),
+    "test24.xml": (REFUSED, r"no <dive> in this Subsurface logbook$"),  # empty on purpose
+    "test25.xml": (IMPORTS, [("2011-12-02T06:00:00", 6, 20.0)]),
+    "test26.xml": (IMPORTS, [("2011-12-02T06:35:00", 6, 20.0)]),
+    "test27.xml": (IMPORTS, [("2011-12-12T06:35:00", 6, 20.0)]),
+    "test28.xml": (IMPORTS, [("2011-12-13T09:26:12", 39, 2.4)]),
+    # Four dives sharing one diveid: four dives all the same.
+    "test29.xml": (
+        IMPORTS,
+        [(f"2011-12-13T{hour:02d}:35:00", 6, 20.1) for hour in (6, 7, 8, 9)],
+    ),
+    "test30.xml": (IMPORTS, [("2013-12-28T06:56:12", 7, 25.0)]),
+    # The divecomputer's own date and time, not the dive's (2012-01-08 15:30:03).
+    "test31.xml": (IMPORTS, [("2014-01-09T14:22:03", 6, 15.0)]),
+    "test32.xml": (IMPORTS, [("2014-03-15T21:44:06", 16, 15.0)]),
+    "test33.xml": (IMPORTS, [("2014-03-15T23:44:06", 16, 15.0)]),
+    "test34.xml": (IMPORTS, [("2014-04-01T06:00:00", 138, 2.9)]),
+    "test35.xml": (IMPORTS, [("2014-04-01T07:00:00", 7, 70.0)]),
+    "test38.xml": (REFUSED, NO_SAMPLES),
+    "test43.xml": (IMPORTS, [("2014-01-09T14:22:03", 7, 15.0)]),
+    "test44.xml": (IMPORTS, [("2014-01-09T14:22:03", 7, 15.0)]),
+    "test47.xml": (IMPORTS, [("2015-10-05T08:45:25", 6, 13.716)]),
+    "test48.xml": (REFUSED, NO_SAMPLES),
+    # Unpadded dates (2015-1-1) are read; these three dives just have no profile.
+    "test50.xml": (REFUSED, NO_SAMPLES + r"; 2 more dives skipped\)$"),
+    "test51.xml": (IMPORTS, [("2018-10-29T16:39:32", 47, 110.0)]),
+    "vyper.xml": (
+        IMPORTS,
+        [("2017-02-03T06:59:41", 216, 26.57), ("2017-02-03T10:25:16", 198, 27.8)],
+    ),
+    "mergedVyperOstc.xml": (
+        IMPORTS,
+        [
+            ("2017-02-03T06:58:00", 78, 26.097),
+            ("2017-02-03T10:24:00", 72, 26.998),
+            ("2017-02-03T06:59:41", 216, 26.57),
+            ("2017-02-03T10:25:16", 198, 27.8),
+        ],
+    ),
 }
 
-# The same dive written by two programs, and Subsurface's reading of the second:
-# (our reading of this file) must equal (our reading of Subsurface's file).
-SAME_DIVE = {"TestDiveDivingLog5.08.uddf": "TestDiveDivelogsDE.xml"}
+# The same dives read by another program and by Subsurface: our reading of the files
+# on the left must give the profiles of our reading of Subsurface's file on the right.
+# Diving Log's UDDF export of a dive and Subsurface's import of divelogs.de's export of
+# it; ostc.xml (../shared/data) and vyper.xml, and Subsurface's file holding both.
+SAME_DIVES = {
+    ("TestDiveDivingLog5.08.uddf",): "TestDiveDivelogsDE.xml",
+    ("../shared/ostc.xml", "vyper.xml"): "mergedVyperOstc.xml",
+}
 
 
 def corpus_files() -> list[str]:
@@ -225,12 +269,18 @@ def test_corpus_matches_subsurface_summary(name: str) -> None:
         assert dive.max_depth_m <= recorded + 0.0005  # Subsurface keeps whole millimetres
 
 
-@pytest.mark.parametrize(("name", "reference"), sorted(SAME_DIVE.items()))
-def test_corpus_same_dive_as_subsurface_read_it(name: str, reference: str) -> None:
-    ours: list[DiveProfile] = read_logbook(CORPUS / name)
+def corpus_path(name: str) -> Path:
+    return DIVELOGS / name.removeprefix("../shared/") if name.startswith("../") else CORPUS / name
+
+
+@pytest.mark.parametrize(("names", "reference"), sorted(SAME_DIVES.items()))
+def test_corpus_same_dives_as_subsurface_read_them(names: tuple[str, ...], reference: str) -> None:
+    ours: list[DiveProfile] = [d for name in names for d in read_logbook(corpus_path(name))]
     theirs = read_logbook(CORPUS / reference)
     assert len(ours) == len(theirs)
     for a, b in zip(ours, theirs, strict=True):
         assert a.start_iso == b.start_iso
+        if a.model and b.model:  # both name the dive computer (Diving Log names itself)
+            assert (a.model, a.serial) == (b.model, b.serial)
         np.testing.assert_array_equal(a.stamps_s, b.stamps_s)
         np.testing.assert_allclose(a.depth_m, b.depth_m, atol=1e-9)

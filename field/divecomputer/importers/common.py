@@ -319,6 +319,7 @@ class LogbookReading:
     def result(self, *, none_found: str) -> list[DiveProfile]:
         """The dives, or an InputError when the file had nothing importable."""
         if self.profiles:
+            _separate_shared_ids(self.path, self.profiles)
             return self.profiles
         if self.skipped:
             where, reason = self.skipped[0]
@@ -327,6 +328,38 @@ class LogbookReading:
             more = f"; {others} more dive{'s' if others > 1 else ''} skipped" if others else ""
             raise InputError(f"{self.path}: no importable dive ({where}: {reason}{more})")
         raise InputError(f"{self.path}: {none_found}")
+
+
+def _separate_shared_ids(path: Path, profiles: list[DiveProfile]) -> None:
+    """Give dives that share a logbook id but start at different times ids of their own.
+
+    A logbook's dive id (Subsurface's `diveid`, a UDDF `id`) is meant to name one dive,
+    but hand-made and converted files repeat it; the dive folder tells dives apart by
+    model, serial and id, so such dives would be taken for one dive imported twice.
+    """
+    starts: dict[tuple[str, str, str], set[str]] = {}
+    for profile in profiles:
+        key = (profile.model, profile.serial, profile.fingerprint)
+        starts.setdefault(key, set()).add(profile.start_iso)
+    for profile in profiles:
+        key = (profile.model, profile.serial, profile.fingerprint)
+        if len(starts[key]) > 1:
+            own = content_fingerprint(
+                profile.start_iso,
+                profile.model,
+                profile.serial,
+                profile.stamps_s.size,
+                float(np.nansum(profile.depth_m)),
+            )
+            log.info(
+                "%s: dive id %s names dives at %d different starts; the one at %s is %s",
+                path,
+                profile.fingerprint,
+                len(starts[key]),
+                profile.start_iso,
+                own,
+            )
+            profile.fingerprint = own
 
 
 def regular_interval_s(stamps_s: Sequence[float]) -> float | None:
