@@ -132,6 +132,13 @@ class DepthSync:
     *_sigma: one-sigma uncertainties (0 for a parameter held fixed).
     used: dive samples inside the trajectory; inliers: those with full Huber weight.
     residuals_m: depth residuals of the used samples at the solution (metres).
+    z_rate_m_per_s: steady drift of the trajectory's z found alongside (m/s;
+        0 when not estimated), and its sigma: the samples are fitted by
+        depth = depth_offset_m - depth_scale * z + z_rate_m_per_s * (u - u_mid),
+        u_mid the middle of the trajectory, so depth_offset_m is the depth
+        relation over the whole trajectory, as without the rate.
+    prior_cost: the priors' share of the fit's cost (drift and z rate,
+        0.5 (value / prior sigma)^2 each), nats.
     """
 
     time_offset_s: float
@@ -148,6 +155,9 @@ class DepthSync:
     robust_scale_m: float
     covariance: FloatArray = field(repr=False)
     residuals_m: FloatArray = field(repr=False, default_factory=lambda: np.zeros(0))
+    z_rate_m_per_s: float = 0.0
+    z_rate_sigma_m_per_s: float = 0.0
+    prior_cost: float = 0.0
 
     def camera_time_s(self, dive_t_s: npt.ArrayLike) -> FloatArray:
         """Camera-clock times (relative seconds) of dive-clock readings (relative seconds)."""
@@ -203,6 +213,25 @@ def sample_interval_s(dive_t_s: FloatArray) -> float:
     return float(np.median(np.diff(dive_t_s)))
 
 
+def despike(depth_m: FloatArray, *, resolution_m: float = 0.1, k: float = 5.0) -> FloatArray:
+    """Depths with isolated spikes replaced by the median of the sample and its neighbours.
+
+    A spike is a sample further than `k` robust sigmas (MAD of the differences
+    from that median, floored at the resolution) from it. A median of three
+    follows a descent or an ascent exactly, so only lone jumps move. For the
+    least-squares coarse search: one 3 m spike entering or leaving the overlap
+    changes the misfit more than a flat dive's whole signal does.
+    """
+    if depth_m.size < 3:
+        return depth_m
+    padded = np.concatenate([depth_m[:1], depth_m, depth_m[-1:]])
+    median3 = np.median(np.lib.stride_tricks.sliding_window_view(padded, 3), axis=1)
+    deviation = depth_m - median3
+    sigma = max(1.4826 * float(np.median(np.abs(deviation))), resolution_m)
+    cleaned: FloatArray = np.where(np.abs(deviation) > k * sigma, median3, depth_m)
+    return cleaned
+
+
 def _correlate(a: FloatArray, b: FloatArray, size: int) -> FloatArray:
     """c[s] = sum_i a[i] * b[i + s] for s = -(len(a) - 1) .. len(b) - 1."""
     fa = np.fft.rfft(a, size)
@@ -225,17 +254,33 @@ def coarse_offset_search(
     max_gap_s: float = 5.0,
     candidates: int = 5,
     prior: ClockPrior | None = None,
+    z_rate_sigma_m_per_s: float | None = None,
+    noise_sigma_m: float = QUANTISATION_SIGMA_M,
+    smooth_s: float | None = None,
+    despike_depth: bool = True,
 ) -> CoarseResult:
-    """Score every clock offset on a `step_s` grid by the depth misfit; best candidates first.
+    """Score every clock offset on a `step_s` grid by the depth misfit; best local minima first.
 
     For an offset o, each dive sample (reading v_k, rounded to the grid) meets
     the trajectory z at camera time v_k - o; the score is the RMS of
-    depth_k + z minus its mean (the depth offset is free, the scale 1). Only
-    offsets within `centre_offset_s +- max_offset_s` where at least
+    depth_k + z minus its mean (the depth offset is free, the scale 1). With
+    `z_rate_sigma_m_per_s`, a steady z drift of the trajectory is removed too:
+    the misfit is that of depth_k + z = c + b v_k with b penalised by a
+    zero-mean prior of that sigma (m/s) against depth noise `noise_sigma_m`
+    (ridge regression; the score is the penalised RMS). A drift of a metre or
+    two, 0.4 % of the distance swum, otherwise dominates the misfit of every
+    offset of a flat dive and hides the one that fits. z is low-passed first
+    as in `fit_depth_sync` (`smooth_s`; None: `antialias_sigma_s`), and lone
+    depth spikes are replaced first (`despike`; `despike_depth`).
+
+    Only offsets within `centre_offset_s +- max_offset_s` where at least
     `min_overlap_fraction` of the possible samples overlap are kept
     (possible: the fewer of the dive's samples and the samples that fit in the
     trajectory's duration). With a `prior`, only offsets inside its windows are
-    kept. Raises SyncError when no offset qualifies.
+    kept. Candidates are local minima of the score (the least within one
+    sample interval either side), so that one broad valley cannot fill the
+    list with its own slopes while a sharp, distinct minimum goes unfitted.
+    Raises SyncError when no offset qualifies.
     """
     traj_t = np.asarray(traj_t_s, dtype=np.float64)
     traj_z = np.asarray(traj_z_m, dtype=np.float64)
@@ -246,7 +291,11 @@ def coarse_offset_search(
     dive_t, depth = dive_t[keep], depth[keep]
     if dive_t.size < 3:
         raise SyncError(f"only {dive_t.size} dive samples with a depth (need at least 3)")
+    if despike_depth:
+        depth = despike(depth)
 
+    interval = sample_interval_s(dive_t)
+    traj_z = smooth_z(traj_t, traj_z, antialias_sigma_s(interval) if smooth_s is None else smooth_s)
     # Trajectory z on the grid j * step + t0, zero (masked) outside and inside gaps.
     t0 = traj_t[0]
     n_traj = round((traj_t[-1] - t0) / step_s) + 1
@@ -279,9 +328,27 @@ def coarse_offset_search(
     with np.errstate(invalid="ignore", divide="ignore"):
         sum_e = s_d + s_z
         sse = s_dd + 2.0 * s_dz + s_zz - sum_e * sum_e / n
+        if z_rate_sigma_m_per_s is not None:
+            # e = depth + z regressed on x = (v - centre) / half_span: centred, the
+            # sums stay well conditioned; the ridge is the rate prior in x units.
+            centre = 0.5 * (dive_t.min() + dive_t.max())
+            half_span = max(0.5 * float(np.ptp(dive_t)), step_s)
+            x = (dive_t - centre) / half_span
+            x_sum = np.zeros(n_dive)
+            xx_sum = np.zeros(n_dive)
+            xd_sum = np.zeros(n_dive)
+            np.add.at(x_sum, bins - a0, x)
+            np.add.at(xx_sum, bins - a0, x * x)
+            np.add.at(xd_sum, bins - a0, x * depth)
+            s_x = _correlate(x_sum, z_mask, size)
+            s_xx = _correlate(xx_sum, z_mask, size)
+            s_xe = _correlate(xd_sum, z_mask, size) + _correlate(x_sum, z_grid, size)
+            ridge = (noise_sigma_m / (z_rate_sigma_m_per_s * half_span)) ** 2
+            sxx_c = np.maximum(s_xx - s_x * s_x / n, 0.0)
+            sxe_c = s_xe - s_x * sum_e / n
+            sse = sse - sxe_c * sxe_c / (sxx_c + ridge)
         rms = np.sqrt(np.maximum(sse, 0.0) / n)
 
-    interval = sample_interval_s(dive_t)
     possible = min(dive_t.size, (traj_t[-1] - traj_t[0]) / interval + 1.0)
     need = max(3.0, min_overlap_fraction * possible)
     searched = np.abs(offsets - centre_offset_s) <= max_offset_s
@@ -298,11 +365,15 @@ def coarse_offset_search(
         )
     score = np.where(ok, rms, np.inf)
     # Local minima of the score, best first, at least a sample interval apart.
-    order = np.argsort(score, kind="stable")
-    picked: list[CoarseCandidate] = []
     separation = max(interval, 2.0 * step_s)
+    half = max(1, int(separation / step_s))
+    padded = np.concatenate([np.full(half, np.inf), score, np.full(half, np.inf)])
+    local_min = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1).min(axis=1)
+    minimum = np.isfinite(score) & (score <= local_min)
+    order = np.flatnonzero(minimum)[np.argsort(score[minimum], kind="stable")]
+    picked: list[CoarseCandidate] = []
     for index in order:
-        if not np.isfinite(score[index]) or len(picked) >= candidates:
+        if len(picked) >= candidates:
             break
         off = float(offsets[index])
         if any(abs(off - c.offset_s) < separation for c in picked):
@@ -313,13 +384,25 @@ def coarse_offset_search(
     )
 
 
+def antialias_sigma_s(sample_interval_s: float) -> float:
+    """Gaussian sigma (s) that halves z at a period of two sample intervals (their Nyquist).
+
+    exp(-0.5 (2 pi sigma / (2 T))^2) = 1/2 gives sigma = 0.375 T: 3.75 s for
+    10 s samples, which keeps 97 % of a 90 s depth change and 3 % of a 9 s bob.
+    """
+    return math.sqrt(2.0 * math.log(2.0)) * sample_interval_s / math.pi
+
+
 def smooth_z(traj_t_s: FloatArray, traj_z_m: FloatArray, sigma_s: float) -> FloatArray:
     """z low-passed by a Gaussian of `sigma_s` seconds (on a uniform grid, then back).
 
     A diver's finning bobs (a few centimetres at periods of seconds) are
     aliased by 10 s sampling: fitted raw, they put spurious minima a second
-    or two from the true offset. The clock information is in the slower
-    changes, which a 2 s Gaussian keeps; being symmetric, it adds no delay.
+    or two from the true offset (a 9 s bob sampled every 10 s looks like a
+    90 s depth change, and shifting z by one bob period matches it again).
+    The clock information is in the slower changes, which survive a low-pass
+    at the samples' Nyquist period (`antialias_sigma_s`); being symmetric,
+    it adds no delay.
     """
     if sigma_s <= 0.0 or traj_t_s.size < 3:
         return traj_z_m
@@ -371,11 +454,12 @@ def fit_depth_sync(
     estimate_scale: bool = False,
     initial_drift_ppm: float = 0.0,
     drift_prior_sigma_ppm: float = 50.0,
+    z_rate_sigma_m_per_s: float | None = None,
     huber_k: float = 1.345,
     noise_floor_m: float = QUANTISATION_SIGMA_M,
     max_gap_s: float = 5.0,
     slope_half_window_s: float = 0.5,
-    smooth_s: float = 2.0,
+    smooth_s: float | None = 2.0,
     max_iterations: int = 50,
 ) -> DepthSync:
     """Robust Gauss-Newton fit of the clock (offset, drift) and the depth relation.
@@ -387,9 +471,14 @@ def fit_depth_sync(
     scale floored at `noise_floor_m`) make single bad samples and a lever arm
     between wrist and camera harmless. The drift has a zero-mean Gaussian
     prior of `drift_prior_sigma_ppm` so a short or flat dive cannot send it
-    anywhere. Samples outside the trajectory or in its gaps (> `max_gap_s`)
-    are left out at each iteration. z is first low-passed with a Gaussian of
-    `smooth_s` seconds (`smooth_z`; 0 to fit the raw z).
+    anywhere. With `z_rate_sigma_m_per_s`, a steady drift of the trajectory's
+    z (rate b, m/s, zero-mean Gaussian prior of that sigma) is fitted too:
+    depth_k = depth_offset - scale * z(u_k) + b (u_k - u_mid), u_mid the middle
+    of the trajectory. Samples outside the
+    trajectory or in its gaps (> `max_gap_s`) are left out at each iteration.
+    z is first low-passed with a Gaussian of `smooth_s` seconds (`smooth_z`;
+    0 to fit the raw z; None: `antialias_sigma_s` of the dive's sample
+    interval).
 
     Raises SyncError when fewer than 3 samples overlap.
     """
@@ -400,11 +489,31 @@ def fit_depth_sync(
     _check_inputs(traj_t, traj_z, dive_t, depth)
     finite = np.isfinite(depth) & np.isfinite(dive_t)
     dive_t, depth = dive_t[finite], depth[finite]
+    if smooth_s is None:
+        smooth_s = antialias_sigma_s(sample_interval_s(dive_t))
     traj_z = smooth_z(traj_t, traj_z, smooth_s)
 
-    # Parameters: offset_s, drift_ppm, depth_offset_m, scale.
-    params = np.array([initial_offset_s, initial_drift_ppm if estimate_drift else 0.0, 0.0, 1.0])
-    active = np.array([estimate_time, estimate_drift and estimate_time, True, estimate_scale])
+    # Parameters: offset_s, drift_ppm, depth_offset_m, scale, z rate (m/s).
+    params = np.array(
+        [initial_offset_s, initial_drift_ppm if estimate_drift else 0.0, 0.0, 1.0, 0.0]
+    )
+    active = np.array(
+        [
+            estimate_time,
+            estimate_drift and estimate_time,
+            True,
+            estimate_scale,
+            z_rate_sigma_m_per_s is not None,
+        ]
+    )
+    # Zero-mean Gaussian priors (sigma per parameter; inf: none).
+    prior_sigma = np.array(
+        [math.inf, drift_prior_sigma_ppm, math.inf, math.inf, z_rate_sigma_m_per_s or math.inf]
+    )
+    has_prior = active & np.isfinite(prior_sigma)
+    # The z rate is counted from the trajectory's middle, so that the depth offset
+    # stays the fit over the whole trajectory (as precise as without the rate).
+    mid_s = 0.5 * float(traj_t[0] + traj_t[-1])
 
     def evaluate(
         p: FloatArray,
@@ -412,20 +521,25 @@ def fit_depth_sync(
         u = camera_time_s(dive_t, p[0], p[1])
         use = valid_mask(traj_t, u, max_gap_s=max_gap_s)
         z, slope = _z_and_slope(traj_t, traj_z, u[use], slope_half_window_s)
-        r: FloatArray = depth[use] - (p[2] - p[3] * z)
+        r: FloatArray = depth[use] - (p[2] - p[3] * z + p[4] * (u[use] - mid_s))
         rate = 1.0 + p[1] * 1e-6
-        J = np.zeros((r.size, 4))
-        J[:, 0] = -p[3] * slope / rate
-        J[:, 1] = -p[3] * slope * u[use] / rate * 1e-6
+        # d r / d offset and d r / d drift: z(u) moves with u, and so does the z rate term.
+        du = (p[3] * slope - p[4]) / rate
+        J = np.zeros((r.size, 5))
+        J[:, 0] = -du
+        J[:, 1] = -du * u[use] * 1e-6
         J[:, 2] = -1.0
         J[:, 3] = z
+        J[:, 4] = -(u[use] - mid_s)
         return r, J, z, use
+
+    def prior_cost(p: FloatArray) -> float:
+        return float(0.5 * np.sum((p[has_prior] / prior_sigma[has_prior]) ** 2))
 
     def cost(r: FloatArray, scale: float, p: FloatArray) -> float:
         a = np.abs(r) / scale
         rho = np.where(a <= huber_k, 0.5 * a * a, huber_k * (a - 0.5 * huber_k))
-        prior = 0.5 * (p[1] / drift_prior_sigma_ppm) ** 2 if active[1] else 0.0
-        return (float(np.sum(rho)) + prior) / max(r.size, 1)
+        return (float(np.sum(rho)) + prior_cost(p)) / max(r.size, 1)
 
     r, J, z, use = evaluate(params)
     if r.size < 3:
@@ -444,10 +558,9 @@ def fit_depth_sync(
         Ja = J[:, idx]
         H = Ja.T @ (Ja * w[:, None])
         g = Ja.T @ (w * r)
-        if active[1]:
-            k1 = int(np.flatnonzero(idx == 1)[0])
-            H[k1, k1] += 1.0 / drift_prior_sigma_ppm**2
-            g[k1] += params[1] / drift_prior_sigma_ppm**2
+        for k in np.flatnonzero(has_prior[idx]):
+            H[k, k] += 1.0 / prior_sigma[idx[k]] ** 2
+            g[k] += params[idx[k]] / prior_sigma[idx[k]] ** 2
         step = -np.linalg.solve(H + 1e-12 * np.eye(idx.size), g)
         current = cost(r, scale_m, params)
         # Backtracking: a linear interpolant makes the cost piecewise smooth only.
@@ -462,7 +575,7 @@ def fit_depth_sync(
         else:
             break
         params[idx] += factor * step
-        small = np.abs(factor * step) < np.array([1e-4, 1e-3, 1e-5, 1e-6])[idx]
+        small = np.abs(factor * step) < np.array([1e-4, 1e-3, 1e-5, 1e-6, 1e-9])[idx]
         if np.all(small):
             break
 
@@ -474,11 +587,10 @@ def fit_depth_sync(
     dof = max(r.size - idx.size, 1)
     variance = max(float(np.sum(w * r * r)) / dof, 1e-12)
     H = Ja.T @ (Ja * w[:, None]) / variance
-    if active[1]:
-        k1 = int(np.flatnonzero(idx == 1)[0])
-        H[k1, k1] += 1.0 / drift_prior_sigma_ppm**2
+    for k in np.flatnonzero(has_prior[idx]):
+        H[k, k] += 1.0 / prior_sigma[idx[k]] ** 2
     cov_active = np.linalg.pinv(H)
-    cov = np.zeros((4, 4))
+    cov = np.zeros((5, 5))
     cov[np.ix_(idx, idx)] = cov_active
     sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
     inlier = w >= 1.0
@@ -496,9 +608,89 @@ def fit_depth_sync(
         used=int(r.size),
         inliers=int(np.count_nonzero(inlier)),
         robust_scale_m=scale_m,
-        covariance=cov,
+        covariance=cov[:4, :4],
         residuals_m=r,
+        z_rate_m_per_s=float(params[4]),
+        z_rate_sigma_m_per_s=float(sig[4]),
+        prior_cost=prior_cost(params),
     )
+
+
+def offset_profile(
+    traj_t_s: npt.ArrayLike,
+    traj_z_m: npt.ArrayLike,
+    dive_t_s: npt.ArrayLike,
+    dive_depth_m: npt.ArrayLike,
+    *,
+    centre_offset_s: float,
+    half_width_s: float,
+    step_s: float = 0.25,
+    drift_ppm: float = 0.0,
+    noise_sigma_m: float = QUANTISATION_SIGMA_M,
+    z_rate_sigma_m_per_s: float | None = None,
+    huber_k: float = 1.345,
+    smooth_s: float | None = 2.0,
+    max_gap_s: float = 5.0,
+    iterations: int = 6,
+) -> tuple[FloatArray, FloatArray]:
+    """Mean robust misfit of every offset on a fine grid around one: (offsets_s, cost).
+
+    For each offset centre +- half_width (every `step_s`), the depth offset
+    and the z rate (as in `fit_depth_sync`, scale 1, drift held) are fitted
+    by a few reweighting steps of Huber least squares at `noise_sigma_m`; the
+    cost is the mean Huber loss of the samples inside the trajectory plus the
+    rate prior's share (inf with fewer than 3 samples). Gauss-Newton from a
+    coarse candidate follows its first step wherever the cost is lower, and
+    with z known only through 10 s samples the cost has minima a bob period
+    apart: a full step from a good start can land in the next one. This
+    profile finds the lowest minimum near the candidate before the fit.
+    """
+    traj_t = np.asarray(traj_t_s, dtype=np.float64)
+    traj_z = np.asarray(traj_z_m, dtype=np.float64)
+    dive_t = np.asarray(dive_t_s, dtype=np.float64)
+    depth = np.asarray(dive_depth_m, dtype=np.float64)
+    finite = np.isfinite(depth) & np.isfinite(dive_t)
+    dive_t, depth = dive_t[finite], depth[finite]
+    if smooth_s is None:
+        smooth_s = antialias_sigma_s(sample_interval_s(dive_t))
+    traj_z = smooth_z(traj_t, traj_z, smooth_s)
+    offsets = centre_offset_s + step_s * np.arange(
+        -math.floor(half_width_s / step_s), math.floor(half_width_s / step_s) + 1
+    )
+    # (offset, sample) arrays: camera times, validity, e = depth + z.
+    u = (dive_t[None, :] - offsets[:, None]) / (1.0 + drift_ppm * 1e-6)
+    valid = valid_mask(traj_t, u.ravel(), max_gap_s=max_gap_s).reshape(u.shape)
+    e = depth[None, :] + np.interp(u, traj_t, traj_z)
+    x = u - 0.5 * float(traj_t[0] + traj_t[-1])
+    rate_sigma = z_rate_sigma_m_per_s or 0.0
+    slope_free = rate_sigma > 0.0
+    ridge = (noise_sigma_m / rate_sigma) ** 2 if slope_free else 0.0
+    w = valid.astype(np.float64)
+    c = np.zeros(offsets.size)
+    b = np.zeros(offsets.size)
+    for _ in range(iterations):
+        sw = w.sum(axis=1)
+        swx = (w * x).sum(axis=1)
+        swxx = (w * x * x).sum(axis=1)
+        swe = (w * e).sum(axis=1)
+        swxe = (w * x * e).sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if slope_free:
+                det = sw * (swxx + ridge) - swx * swx
+                c = (swe * (swxx + ridge) - swx * swxe) / det
+                b = (sw * swxe - swx * swe) / det
+            else:
+                c = swe / sw
+        r = e - c[:, None] - b[:, None] * x
+        a = np.abs(r) / noise_sigma_m
+        w = np.where(a > huber_k, huber_k / np.maximum(a, 1e-300), 1.0) * valid
+    a = np.abs(e - c[:, None] - b[:, None] * x) / noise_sigma_m
+    rho = np.where(a <= huber_k, 0.5 * a * a, huber_k * (a - 0.5 * huber_k)) * valid
+    n = valid.sum(axis=1)
+    prior = 0.5 * (b / rate_sigma) ** 2 if slope_free else np.zeros(offsets.size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cost: FloatArray = np.where(n >= 3, (rho.sum(axis=1) + prior) / n, np.inf)
+    return offsets.astype(np.float64), cost
 
 
 def depth_variation_m(
@@ -553,7 +745,9 @@ class AmbiguityLimits:
     min_separation_s: offsets closer than max(this, 3 sigma of the best) are
         one solution, seconds.
     min_depth_range_m: the overlapping dive depths and trajectory z must both
-        span this much (5-95 percentile), metres.
+        span this much (5-95 percentile), metres; 0: no such gate. Flatness is
+        judged by the data (`flat_cost`): the trajectory must explain the
+        depths better than a constant depth does, by `min_evidence`.
     max_time_sigma_s: the offset's one-sigma uncertainty must be below this, s.
     noise_sigma_m: expected depth noise (quantisation, lever arm), metres: the
         scale candidates are ranked at and the least scale costs are compared at.
@@ -565,7 +759,7 @@ class AmbiguityLimits:
     min_evidence: float = 6.0
     min_samples: int = 4
     min_separation_s: float = 3.0
-    min_depth_range_m: float = 1.0
+    min_depth_range_m: float = 0.0
     max_time_sigma_s: float = 5.0
     noise_sigma_m: float = EXPECTED_NOISE_M
     resolution_m: float = DEPTH_RESOLUTION_M
@@ -578,12 +772,54 @@ class Solution:
 
     depth_range_m, z_range_m: 5-95 percentile spans of the overlapping dive
     depths and of the trajectory z there, metres (`depth_variation_m`).
+    flat_residuals_m, flat_prior_cost: the same samples fitted by a flat
+    profile, no trajectory at all (`flat_profile_fit`): the null model the
+    fit must beat; None when not computed.
     """
 
     dive: int
     sync: DepthSync
     depth_range_m: float
     z_range_m: float
+    flat_residuals_m: FloatArray | None = field(default=None, repr=False)
+    flat_prior_cost: float = 0.0
+
+
+def flat_profile_fit(
+    u_s: FloatArray,
+    depth_m: FloatArray,
+    *,
+    noise_sigma_m: float,
+    z_rate_sigma_m_per_s: float | None,
+    huber_k: float = 1.345,
+    iterations: int = 30,
+) -> tuple[FloatArray, float]:
+    """Residuals (m) and prior cost (nats) of the depths fitted with no trajectory at all.
+
+    The null model of the sync: depth_k = c + b u_k (a constant depth plus the
+    same penalised z rate the sync may use), by iteratively reweighted Huber
+    least squares at `noise_sigma_m`. A clock offset is only found when the
+    trajectory's z explains the depths clearly better than this: on a flat
+    profile it explains nothing, whatever its span in metres.
+    """
+    columns = [np.ones_like(u_s), u_s] if z_rate_sigma_m_per_s else [np.ones_like(u_s)]
+    X = np.column_stack(columns)
+    ridge = np.zeros(X.shape[1])
+    if z_rate_sigma_m_per_s:
+        ridge[1] = (noise_sigma_m / z_rate_sigma_m_per_s) ** 2
+    coef = np.zeros(X.shape[1])
+    coef[0] = float(np.median(depth_m)) if depth_m.size else 0.0
+    for _ in range(iterations):
+        r = depth_m - X @ coef
+        w = _huber_weights(r, noise_sigma_m, huber_k)
+        new = np.linalg.solve(X.T @ (X * w[:, None]) + np.diag(ridge), X.T @ (w * depth_m))
+        if np.allclose(new, coef, rtol=0.0, atol=1e-9):
+            coef = new
+            break
+        coef = new
+    residuals: FloatArray = depth_m - X @ coef
+    prior = 0.5 * (coef[1] / z_rate_sigma_m_per_s) ** 2 if z_rate_sigma_m_per_s else 0.0
+    return residuals, float(prior)
 
 
 @dataclass(frozen=True)
@@ -601,9 +837,13 @@ class OffsetAmbiguity:
     runner_up_*: the best fit at a clearly different offset (or another dive):
         its offset (s), dive index, mean cost and depth offset (m); None when
         there is none.
-    evidence: samples x (runner_up_cost - best_cost); inf without a runner-up.
+    evidence: samples x (runner_up_cost - best_cost), plus the difference of
+        the two fits' prior costs; inf without a runner-up.
     solutions: distinct offsets compared (the chosen one included).
     reasons: why the offset is not known; empty when it is.
+    flat_evidence: the same measure against a flat profile (the depths
+        fitted with no trajectory, `flat_profile_fit`): how much the
+        trajectory explains at all; inf when not computed.
     """
 
     samples: int
@@ -620,6 +860,7 @@ class OffsetAmbiguity:
     evidence: float
     solutions: int
     reasons: tuple[str, ...]
+    flat_evidence: float = math.inf
 
     @property
     def ambiguous(self) -> bool:
@@ -644,15 +885,21 @@ def assess_offset(
     The best is the one of least mean Huber cost at `limits.noise_sigma_m` (a
     common, fixed scale: each fit's own robust scale is no measure to choose
     by, since with a handful of samples a wrong offset can declare a third of
-    them outliers and fit the rest exactly). Raises ValueError for no solution.
+    them outliers and fit the rest exactly), its priors' cost (drift, z rate)
+    shared out over its samples. The best must beat every clearly different
+    offset, and a flat profile fitted to its samples (when the solution
+    carries one), by `limits.min_evidence`. Raises ValueError for no solution.
     """
     if not solutions:
         raise ValueError("assess_offset: no solution to assess")
     lim = limits or AmbiguityLimits()
     k = lim.huber_k
-    ranked = sorted(
-        solutions, key=lambda s: mean_huber_cost(s.sync.residuals_m, lim.noise_sigma_m, k)
-    )
+
+    def ranking_cost(s: Solution) -> float:
+        used = max(s.sync.used, 1)
+        return mean_huber_cost(s.sync.residuals_m, lim.noise_sigma_m, k) + s.sync.prior_cost / used
+
+    ranked = sorted(solutions, key=ranking_cost)
     best = ranked[0]
     sync = best.sync
     sigma_t = sync.time_offset_sigma_s
@@ -673,11 +920,18 @@ def assess_offset(
             distinct.append(s)
     runner: Solution | None = None
     runner_cost = math.inf
+    runner_total = math.inf
     for s in distinct:
         cost = mean_huber_cost(s.sync.residuals_m, cost_sigma, k)
-        if cost < runner_cost:
-            runner, runner_cost = s, cost
-    evidence = sync.used * (runner_cost - best_cost) if runner is not None else math.inf
+        total = sync.used * cost + s.sync.prior_cost
+        if total < runner_total:
+            runner, runner_cost, runner_total = s, cost, total
+    best_total = sync.used * best_cost + sync.prior_cost
+    evidence = runner_total - best_total if runner is not None else math.inf
+    flat_evidence = math.inf
+    if best.flat_residuals_m is not None:
+        flat_cost = mean_huber_cost(best.flat_residuals_m, cost_sigma, k)
+        flat_evidence = sync.used * flat_cost + best.flat_prior_cost - best_total
 
     reasons = []
     if sync.used < lim.min_samples:
@@ -689,6 +943,13 @@ def assess_offset(
             f"the depth profile is too flat to find the clock offset (depth spans "
             f"{best.depth_range_m:.2f} m, trajectory z {best.z_range_m:.2f} m where they overlap;"
             f" need {lim.min_depth_range_m:.2f} m)"
+        )
+    if not flat_evidence >= lim.min_evidence:
+        reasons.append(
+            f"the depth profile is too flat to find the clock offset (depth spans "
+            f"{best.depth_range_m:.2f} m, trajectory z {best.z_range_m:.2f} m where they overlap, "
+            f"and the trajectory explains the depths hardly better than a constant depth: "
+            f"evidence {flat_evidence:.1f}, need {lim.min_evidence:.1f})"
         )
     if runner is not None and not evidence >= lim.min_evidence:
         reasons.append(
@@ -717,6 +978,7 @@ def assess_offset(
         evidence=evidence,
         solutions=1 + len(distinct),
         reasons=tuple(reasons),
+        flat_evidence=flat_evidence,
     )
     return best, ambiguity
 
@@ -756,6 +1018,8 @@ def _fitted_solutions(
     fit: dict[str, float | bool],
     candidates: int,
     labels: list[str],
+    z_rate_sigma_m_per_s: float | None,
+    noise_sigma_m: float,
 ) -> tuple[list[Solution], dict[int, list[CoarseCandidate]], list[str]]:
     solutions: list[Solution] = []
     coarse_by_dive: dict[int, list[CoarseCandidate]] = {}
@@ -773,20 +1037,38 @@ def _fitted_solutions(
                 max_gap_s=search["max_gap_s"],
                 candidates=candidates,
                 prior=prior,
+                z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
+                noise_sigma_m=noise_sigma_m,
             )
         except SyncError as error:
             failures.append(f"{labels[index]}: {error}")
             continue
         coarse_by_dive[index] = coarse.candidates
+        separation_s = max(sample_interval_s(dive_t), 2.0 * search["step_s"])
         for candidate in coarse.candidates:
+            # The lowest minimum within the candidate's reach (up to the next local
+            # minimum the coarse search could have kept), then the fit from it.
+            offsets, cost = offset_profile(
+                traj_t,
+                traj_z,
+                dive_t,
+                depth,
+                centre_offset_s=candidate.offset_s,
+                half_width_s=separation_s,
+                noise_sigma_m=noise_sigma_m,
+                z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
+                max_gap_s=search["max_gap_s"],
+            )
+            start_s = float(offsets[np.argmin(cost)]) if np.isfinite(cost).any() else None
             try:
                 sync = fit_depth_sync(
                     traj_t,
                     traj_z,
                     dive_t,
                     depth,
-                    initial_offset_s=candidate.offset_s,
+                    initial_offset_s=candidate.offset_s if start_s is None else start_s,
                     max_gap_s=search["max_gap_s"],
+                    z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
                     **fit,  # type: ignore[arg-type]
                 )
             except SyncError:
@@ -796,7 +1078,17 @@ def _fitted_solutions(
             depth_range, z_range = depth_variation_m(
                 traj_t, traj_z, dive_t, depth, sync, max_gap_s=search["max_gap_s"]
             )
-            solutions.append(Solution(index, sync, depth_range, z_range))
+            u = sync.camera_time_s(dive_t)
+            used = valid_mask(traj_t, u, max_gap_s=search["max_gap_s"]) & np.isfinite(depth)
+            flat_residuals, flat_prior = flat_profile_fit(
+                u[used],
+                depth[used],
+                noise_sigma_m=noise_sigma_m,
+                z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
+            )
+            solutions.append(
+                Solution(index, sync, depth_range, z_range, flat_residuals, flat_prior)
+            )
     return solutions, coarse_by_dive, failures
 
 
@@ -816,6 +1108,7 @@ def solve_clock_offset(
     estimate_drift: bool = True,
     estimate_scale: bool = False,
     drift_prior_sigma_ppm: float = 50.0,
+    z_walk_sigma_m_per_sqrt_s: float | None = 0.01,
 ) -> ClockSolution:
     """Find the clock offset against one or more dives, and say whether it is known.
 
@@ -827,6 +1120,13 @@ def solve_clock_offset(
     is taken when it is unambiguous there and the unrestricted search does not
     rule it out (no fit outside beats it by `limits.min_evidence`). The result
     may still be ambiguous: the caller decides what to do then.
+
+    `z_walk_sigma_m_per_sqrt_s` is the trajectory's vertical drift (VIO: a
+    random walk of about 0.01 m/sqrt(s), or a steady 0.4 % of the distance
+    swum): its steady part, a z rate, is fitted alongside the clock under a
+    prior of that sigma over the square root of the trajectory's duration
+    (None: no z rate). On a long, nearly flat dive a drift of a metre or two
+    is larger than the depth changes the clock is read from.
 
     Raises SyncError when no dive overlaps the trajectory at any offset.
     """
@@ -846,6 +1146,12 @@ def solve_clock_offset(
         "estimate_scale": estimate_scale,
         "drift_prior_sigma_ppm": drift_prior_sigma_ppm,
     }
+    duration_s = float(traj_t[-1] - traj_t[0]) if traj_t.size else 0.0
+    z_rate_sigma = (
+        None
+        if z_walk_sigma_m_per_sqrt_s is None or duration_s <= 0.0
+        else z_walk_sigma_m_per_sqrt_s / math.sqrt(duration_s)
+    )
     solutions, coarse, failures = _fitted_solutions(
         traj_t,
         traj_z,
@@ -855,6 +1161,8 @@ def solve_clock_offset(
         fit=fit,
         candidates=candidates,
         labels=names,
+        z_rate_sigma_m_per_s=z_rate_sigma,
+        noise_sigma_m=lim.noise_sigma_m,
     )
     if not solutions:
         raise SyncError("; ".join(failures) or "no fit converged")
@@ -884,15 +1192,22 @@ def solve_clock_offset(
         fit=fit,
         candidates=candidates,
         labels=names,
+        z_rate_sigma_m_per_s=z_rate_sigma,
+        noise_sigma_m=lim.noise_sigma_m,
     )
     if not inside:
         return answer
     chosen, inside_ambiguity = assess_offset(inside, lim)
     # The data outside the prior may still rule its answer out.
     sigma = ambiguity.cost_sigma_m
-    gap = chosen.sync.used * (
-        mean_huber_cost(chosen.sync.residuals_m, sigma, lim.huber_k)
-        - mean_huber_cost(best.sync.residuals_m, sigma, lim.huber_k)
+    gap = (
+        chosen.sync.used
+        * (
+            mean_huber_cost(chosen.sync.residuals_m, sigma, lim.huber_k)
+            - mean_huber_cost(best.sync.residuals_m, sigma, lim.huber_k)
+        )
+        + chosen.sync.prior_cost
+        - best.sync.prior_cost
     )
     if gap >= lim.min_evidence:
         inside_ambiguity = dataclasses.replace(

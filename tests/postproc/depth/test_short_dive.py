@@ -39,6 +39,19 @@ def _options(**changes: object) -> DepthOptions:
     return options
 
 
+def _best_offsets(
+    offsets_s: np.ndarray, rms_m: np.ndarray, *, separation_s: float, count: int = 5
+) -> list[float]:
+    """The old candidate rule: the best-scoring grid offsets at least `separation_s` apart."""
+    picked: list[float] = []
+    for index in np.argsort(rms_m, kind="stable"):
+        if len(picked) >= count:
+            break
+        if all(abs(offsets_s[index] - p) >= separation_s for p in picked):
+            picked.append(float(offsets_s[index]))
+    return picked
+
+
 def _old_rule(case: DemoSession) -> tuple[float, float] | None:
     """(offset_s, depth_offset_m) the stage returned before; None when it refused."""
     trajectory = read_tum(case.trajectory)
@@ -49,14 +62,21 @@ def _old_rule(case: DemoSession) -> tuple[float, float] | None:
     for profile in read_dive_folder(case.dives):
         dive_t = profile.stamps_s - reference_ns / 1e9
         try:
+            # The search of then: raw z and depths, the five best grid offsets 10 s apart.
             coarse = coarse_offset_search(
-                traj_t, traj_z, dive_t, profile.depth_m, max_offset_s=15 * 3600.0
+                traj_t,
+                traj_z,
+                dive_t,
+                profile.depth_m,
+                max_offset_s=15 * 3600.0,
+                smooth_s=0.0,
+                despike_depth=False,
             )
         except SyncError:
             continue
-        for candidate in coarse.candidates:
+        for offset_s in _best_offsets(coarse.offsets_s, coarse.rms_m, separation_s=10.0):
             sync = fit_depth_sync(
-                traj_t, traj_z, dive_t, profile.depth_m, initial_offset_s=candidate.offset_s
+                traj_t, traj_z, dive_t, profile.depth_m, initial_offset_s=offset_s, smooth_s=2.0
             )
             if best is None or sync.robust_scale_m < best[0].robust_scale_m:
                 best = (sync, dive_t, profile.depth_m)

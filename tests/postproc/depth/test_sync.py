@@ -214,7 +214,7 @@ def test_assess_offset_weighs_the_runner_up():
 
 def test_assess_offset_reasons():
     flat = Solution(1, _sync(10.0, [0.01, -0.01, 0.0, 0.02]), 0.3, 0.4)
-    _, ambiguity = assess_offset([flat])
+    _, ambiguity = assess_offset([flat], AmbiguityLimits(min_depth_range_m=1.0))
     assert ambiguity.runner_up_offset_s is None and ambiguity.evidence == math.inf
     assert ambiguity.reasons == (
         "the depth profile is too flat to find the clock offset (depth spans 0.30 m, "
