@@ -313,9 +313,9 @@ def download_cut(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) 
     truth = download_cut.truth  # type: ignore[attr-defined]
     folder = work / f"dc{row.trials}"
     cut = rng.randrange(1, total)
-    with serving(unit(), LineFaults(FaultOptions(disconnect_after_bytes=cut))) as port:
-        with suppress(DeviceError):
-            download_dives(port, folder, quick)
+    cable = LineFaults(FaultOptions(disconnect_after_bytes=cut))
+    with serving(unit(), cable) as port, suppress(DeviceError):
+        download_dives(port, folder, quick)
     kept = len(read_dive_index(folder)) if (folder / "dives.json").exists() else 0
     t0 = time.monotonic()
     with serving(unit()) as port:
