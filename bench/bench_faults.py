@@ -146,7 +146,7 @@ def sigkill(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> No
 def disk_watermark(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> None:
     from shared.archive import ArchiveReader
 
-    size = rng.choice([1536, 2048, 3072])
+    size = rng.choice([1024, 1536, 2048])
     with tmpfs(work / f"card{row.trials}", size) as card:
         t0 = time.monotonic()
         run = subprocess.run(
