@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from postproc.slam.imu_stream import ImuCleaning, clean_imu_rows
 from postproc.slam.types import ImuSamples
 from shared.calibration.kalibr import CameraCalibration, ImuNoise, read_camchain, read_imu_yaml
 from shared.errors import InputError
@@ -65,7 +66,12 @@ class SlamInput(Protocol):
 
     @property
     def imu(self) -> ImuSamples:
-        """All IMU samples (IMU clock)."""
+        """All IMU samples (IMU clock), strictly increasing."""
+        ...
+
+    @property
+    def imu_cleaning(self) -> ImuCleaning:
+        """What was merged, dropped or interpolated to make `imu` (postproc.slam.imu_stream)."""
         ...
 
     @property
@@ -88,6 +94,13 @@ class EurocInput:
         self._data = read_euroc(folder)
         if len(self._data.imu_stamps_ns) < 2:
             raise InputError(f"{folder}: fewer than 2 IMU samples in mav0/imu0/data.csv")
+        # read_euroc already refuses rows out of order; this merges what it lets through.
+        self._imu, self.imu_cleaning = clean_imu_rows(
+            self._data.imu_stamps_ns,
+            self._data.gyro_rad_s,
+            self._data.accel_m_s2,
+            name=f"{folder}: mav0/imu0/data.csv",
+        )
 
     @property
     def name(self) -> str:
@@ -107,8 +120,7 @@ class EurocInput:
 
     @property
     def imu(self) -> ImuSamples:
-        d = self._data
-        return ImuSamples(d.imu_stamps_ns, d.gyro_rad_s, d.accel_m_s2)
+        return self._imu
 
     @property
     def frame_count(self) -> int:
@@ -163,13 +175,19 @@ class SessionInput:
             raise InputError(
                 f"{folder}: no images (expected {self.IMAGE_TOPIC} or {self.VIDEO_TOPIC})"
             )
-        all_stamps = np.concatenate(stamps)
-        order = np.argsort(all_stamps, kind="stable")
-        all_stamps = all_stamps[order]
-        keep = np.concatenate([[True], np.diff(all_stamps) > 0])  # duplicate stamps: keep one
-        self._imu = ImuSamples(
-            all_stamps[keep], np.concatenate(gyro)[order][keep], np.concatenate(accel)[order][keep]
-        )
+        # Rotated recordings follow each other in time; duplicate or out-of-order rows
+        # inside them are merged or dropped with a warning (postproc.slam.imu_stream).
+        try:
+            self._imu, self.imu_cleaning = clean_imu_rows(
+                np.concatenate(stamps),
+                np.concatenate(gyro),
+                np.concatenate(accel),
+                name=f"{folder}: {self.IMU_TOPIC}",
+            )
+        except ValueError as error:
+            raise InputError(str(error)) from None
+        if len(self._imu) < 2:
+            raise InputError(f"{folder}: fewer than 2 usable IMU samples on {self.IMU_TOPIC}")
         camchain = folder / "calib" / "camchain.yaml"
         imu_yaml = folder / "calib" / "imu.yaml"
         self._calibration = read_camchain(camchain)[0] if camchain.is_file() else None

@@ -66,7 +66,7 @@ from postproc.slam.initialization import preintegrate
 from postproc.slam.inputs import SlamInput, open_input
 from postproc.slam.loop_closure import Descriptors, orb_descriptors
 from postproc.slam.stabilised import gravity_and_scale
-from postproc.slam.types import FloatArray, FrameTracks, IntArray
+from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
 from postproc.slam.visual_only import VisualOnlyEstimator
 from shared.calibration.kalibr import (
     CameraCalibration,
@@ -338,6 +338,7 @@ def run(
         if options.max_frames is not None:
             total = min(total, options.max_frames)
         tracking_failures = 0
+        coverage = ImuCoverage.of(source.imu, round(calibration.timeshift_cam_imu_s * 1e9))
         previous_stamp: int | None = None
         first_stamp: int | None = None
         last_stamp = 0
@@ -346,6 +347,8 @@ def run(
         ):
             if options.max_frames is not None and count >= options.max_frames:
                 break
+            if options.use_imu and not coverage.covers(frame.stamp_ns):
+                continue  # the IMU starts after or ends before this image
             rotation = (
                 _gyro_rotation(estimator, calibration, previous_stamp, frame.stamp_ns)
                 if previous_stamp is not None and isinstance(estimator, SlamEstimator)
@@ -362,7 +365,11 @@ def run(
             previous_stamp = frame.stamp_ns
             first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
             last_stamp = frame.stamp_ns
-        result = estimator.finish()
+        coverage.warn(source.name)
+        try:
+            result = estimator.finish()
+        except StageError as error:
+            raise StageError(f"{source.name}: {error}") from error
         if stabilised:
             result = gravity_and_scale(
                 result,
@@ -405,6 +412,8 @@ def run(
                 "real_time_factor_cpu": duration_s / cpu_time_s if cpu_time_s > 0 else 0.0,
                 "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
                 "tracking_failures": tracking_failures,
+                **coverage.as_stats(),
+                **source.imu_cleaning.as_stats(),
                 "frontend_width_px": frontend.image_size[0],
                 "lost_tracks": frontend.lost_tracks,
                 "rejected_tracks": frontend.rejected_tracks,
@@ -417,6 +426,68 @@ def run(
             if path.name not in kept:
                 path.unlink()
     return out
+
+
+@dataclass
+class ImuCoverage:
+    """Which images the IMU covers, on the camera clock (int64 ns).
+
+    An IMU often starts after the first image or stops before the last (a GoPro's
+    first IMU sample can come 59 ms after its first frame). The visual-inertial
+    estimate uses only the images inside the IMU's span; the others are counted and
+    reported (stats.json: `frames_before_imu`, `frames_after_imu`).
+    """
+
+    start_cam_ns: int
+    end_cam_ns: int
+    before: int = 0
+    after: int = 0
+    inside: int = 0
+    first_frame_ns: int | None = None
+    last_frame_ns: int | None = None
+
+    @classmethod
+    def of(cls, imu: ImuSamples, shift_ns: int) -> ImuCoverage:
+        """The span of `imu` moved to the camera clock (t_cam = t_imu - shift)."""
+        return cls(int(imu.stamps_ns[0]) - shift_ns, int(imu.stamps_ns[-1]) - shift_ns)
+
+    def covers(self, stamp_ns: int) -> bool:
+        """Whether the image at `stamp_ns` (camera clock) lies in the IMU's span; counts it."""
+        self.first_frame_ns = stamp_ns if self.first_frame_ns is None else self.first_frame_ns
+        self.last_frame_ns = stamp_ns
+        if stamp_ns < self.start_cam_ns:
+            self.before += 1
+            return False
+        if stamp_ns > self.end_cam_ns:
+            self.after += 1
+            return False
+        self.inside += 1
+        return True
+
+    def warn(self, name: str) -> None:
+        """Log what the IMU left out (nothing when it covers every image)."""
+        if self.before or self.after:
+            LOG.warning(
+                "%s: the IMU covers %d of %d images (it starts %.3f s after the first and "
+                "ends %.3f s before the last); SLAM uses the images it covers",
+                name,
+                self.inside,
+                self.inside + self.before + self.after,
+                max(self.start_cam_ns - (self.first_frame_ns or 0), 0) * 1e-9,
+                max((self.last_frame_ns or 0) - self.end_cam_ns, 0) * 1e-9,
+            )
+
+    def as_stats(self) -> dict[str, float | int]:
+        """The stats.json entries."""
+        first = self.first_frame_ns if self.first_frame_ns is not None else self.start_cam_ns
+        last = self.last_frame_ns if self.last_frame_ns is not None else self.end_cam_ns
+        return {
+            "frames_before_imu": self.before,
+            "frames_after_imu": self.after,
+            "frames_in_imu_span": self.inside,
+            "imu_starts_after_first_frame_s": max(self.start_cam_ns - first, 0) * 1e-9,
+            "imu_ends_before_last_frame_s": max(last - self.end_cam_ns, 0) * 1e-9,
+        }
 
 
 class _Failure:
