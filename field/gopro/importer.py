@@ -444,14 +444,20 @@ def _read_chapter_imu(
     streams = {key: found.streams[key] for key in ("ACCL", "GYRO")}
     values = {}
     for key, stream in streams.items():
-        if stream.elements != 3:
-            raise InputError(f"{name}: {key} has {stream.elements} values per sample (expected 3)")
         order = stream.orientation_in or camera.imu_axis_order
-        if order is None:
-            raise InputError(
-                f"{name}: {key} has no ORIN and the camera model's axis order is unknown"
+        if stream.elements != 3:
+            problem = f"{key} has {stream.elements} values per sample (expected 3)"
+        elif order is None:
+            problem = (
+                f"{key} has no ORIN and the axis order of this camera model "
+                f"({camera.name}) is unknown"
             )
-        values[key] = stream.values @ cameras.body_from_file_axes(order, source=f"{name}: {key}").T
+        else:
+            body_from_file = cameras.body_from_file_axes(order, source=f"{name}: {key}")
+            values[key] = stream.values @ body_from_file.T
+            continue
+        warnings.append(f"{name}: {problem}; video imported without IMU")
+        return None
     accel_t = streams["ACCL"].times_ns
     gyro_t = streams["GYRO"].times_ns
     gyro = values["GYRO"]

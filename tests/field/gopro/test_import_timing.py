@@ -3,6 +3,8 @@ a late IMU keeps its true times and is said to be late."""
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
 from datetime import UTC, datetime
 from fractions import Fraction
 from pathlib import Path
@@ -11,11 +13,14 @@ import numpy as np
 import pytest
 import yaml
 
+from field.gopro import cameras
+from field.gopro.cameras import GoProCamera
 from field.gopro.importer import ImportOptions, import_recording
 from field.gopro.mp4 import read_mp4
 from field.gopro.telemetry import read_telemetry
 from field.gopro.writer import encode_gpmf_imu_payload, encode_h264, write_gopro_mp4
 from shared.archive import ArchiveReader
+from shared.errors import InputError
 
 FPS = Fraction(30000, 1001)
 FRAMES = 30  # per 1.001 s payload
@@ -42,7 +47,13 @@ def video() -> dict[str, object]:
     }
 
 
-def _write(path: Path, video: dict[str, object], *, imu_late_us: int = 0) -> Path:
+def _write(
+    path: Path,
+    video: dict[str, object],
+    *,
+    imu_late_us: int = 0,
+    patch: Callable[[bytes], bytes] = lambda payload: payload,
+) -> Path:
     """Five payloads of HERO8+-style telemetry: ACCL/GYRO at 200 Hz with STMP/TSMP, and
     CORI (one sample per frame, STMP = the frame's start) tying STMP to video frame 0."""
     payloads = []
@@ -50,18 +61,20 @@ def _write(path: Path, video: dict[str, object], *, imu_late_us: int = 0) -> Pat
         k = p * IMU + np.arange(IMU)
         gyro = np.column_stack([np.sin(k / 50.0), np.cos(k / 70.0), 0.01 * k]) * 0.3
         payloads.append(
-            encode_gpmf_imu_payload(
-                accl_mps2=np.tile([0.0, -9.81, 0.0], (IMU, 1)),
-                gyro_rads=gyro,
-                accl_first_us=p * PAYLOAD_US + imu_late_us,
-                gyro_first_us=p * PAYLOAD_US + imu_late_us,
-                accl_total_before=p * IMU,
-                gyro_total_before=p * IMU,
-                orientation_in="XzY",
-                orientation_out="XYZ",
-                cori_quat_wxyz=np.tile([1.0, 0.0, 0.0, 0.0], (FRAMES, 1)),
-                cori_first_us=p * PAYLOAD_US,
-                cori_total_before=p * FRAMES,
+            patch(
+                encode_gpmf_imu_payload(
+                    accl_mps2=np.tile([0.0, -9.81, 0.0], (IMU, 1)),
+                    gyro_rads=gyro,
+                    accl_first_us=p * PAYLOAD_US + imu_late_us,
+                    gyro_first_us=p * PAYLOAD_US + imu_late_us,
+                    accl_total_before=p * IMU,
+                    gyro_total_before=p * IMU,
+                    orientation_in="XzY",
+                    orientation_out="XYZ",
+                    cori_quat_wxyz=np.tile([1.0, 0.0, 0.0, 0.0], (FRAMES, 1)),
+                    cori_first_us=p * PAYLOAD_US,
+                    cori_total_before=p * FRAMES,
+                )
             )
         )
     return write_gopro_mp4(path, gpmf_payloads=payloads, **video)  # type: ignore[arg-type]
@@ -136,6 +149,56 @@ def test_late_imu_keeps_its_true_times_and_is_said(tmp_path: Path, video) -> Non
     _, _, quiet, document = _import(on_time, tmp_path / "on_time")
     assert not [w for w in quiet if "IMU starts" in w]
     assert document["chapters"][0]["imu_start_s"] == 0.0
+
+
+def _two_values_per_sample(payload: bytes) -> bytes:
+    """ACCL's 200 samples of 3 int16 relabelled as 300 samples of 2 (same bytes)."""
+    header = b"ACCLs\x06" + IMU.to_bytes(2, "big")
+    assert payload.count(header) == 1
+    return payload.replace(header, b"ACCLs\x04" + (IMU * 3 // 2).to_bytes(2, "big"))
+
+
+@pytest.mark.parametrize(
+    ("patch", "camera", "problem"),
+    [
+        (_two_values_per_sample, None, "ACCL has 2 values per sample (expected 3)"),
+        (
+            lambda payload: payload.replace(b"ORIN", b"XRIN"),  # an unknown key: no ORIN
+            GoProCamera(
+                name="Mystery Cam", firmware_prefixes=(), hfov_wide_deg=118.2, imu_axis_order=None
+            ),
+            "ACCL has no ORIN and the axis order of this camera model (Mystery Cam) is unknown",
+        ),
+    ],
+)
+def test_unusable_imu_streams_keep_the_video(
+    tmp_path: Path,
+    video,
+    monkeypatch: pytest.MonkeyPatch,
+    patch: Callable[[bytes], bytes],
+    camera: GoProCamera | None,
+    problem: str,
+) -> None:
+    if camera is not None:  # a model whose data order nobody knows (every listed one is known)
+        monkeypatch.setattr(cameras, "lookup_camera", lambda **_: camera)
+    path = _write(tmp_path / "GX010005.MP4", video, patch=patch)
+    result = import_recording(ImportOptions(), [path], tmp_path / "s")
+    assert result.frames == 5 * FRAMES and result.imu_samples == 0
+    assert [w for w in result.warnings if problem in w and "without IMU" in w]
+    with pytest.raises(InputError, match=re.escape(problem)):
+        import_recording(ImportOptions(require_imu=True), [path], tmp_path / "strict")
+    assert not (tmp_path / "strict").exists()
+
+
+def test_every_payload_corrupt(tmp_path: Path, video) -> None:
+    clean = _write(tmp_path / "GX010001.MP4", video)
+    broken = _corrupt_payloads(clean, tmp_path / "GX010006.MP4", list(range(5)))
+    with pytest.raises(InputError, match=r"GX010006\.MP4: 5 of 5 GPMF payloads corrupt.*left"):
+        read_telemetry(broken)
+    result = import_recording(ImportOptions(), [broken], tmp_path / "s")
+    assert result.frames == 5 * FRAMES and result.imu_samples == 0
+    assert any("5 of 5 GPMF payloads corrupt" in w for w in result.warnings)
+    assert any("no ACCL or GYRO samples" in w for w in result.warnings)
 
 
 @pytest.mark.parametrize(("name", "timing"), [("karma.mp4", "tsmp"), ("max-heromode.mp4", "stmp")])
