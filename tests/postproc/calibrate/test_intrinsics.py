@@ -1,8 +1,7 @@
-"""Intrinsics on rendered AprilGrid views (known camera) and on the two real photos."""
+"""Intrinsics on rendered AprilGrid views (known camera); the real photos are in tests/real."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
@@ -14,7 +13,6 @@ from postproc.calibrate.intrinsics import (
 )
 from postproc.calibrate.stage import detect_grid
 from postproc.merge.detect import DetectionOptions
-from shared.calibration.aprilgrid import AprilGridTarget
 from shared.errors import StageError
 
 from .simulation import TARGET, board_views, equidistant_camera
@@ -123,50 +121,3 @@ def test_degenerate_views_fail_cleanly(radtan_grid_views):
     )
     with pytest.raises(StageError, match="intrinsics"):
         calibrate_intrinsics([flat] * 4, (320, 240))
-
-
-# --------------------------------------------------------------------- real photographs
-
-PHOTO_TARGET = AprilGridTarget(tag_rows=6, tag_cols=6, tag_size_m=0.088, tag_spacing_ratio=0.3)
-
-
-@pytest.fixture(scope="module")
-def photo_views(shared_data):
-    views = []
-    for index, name in enumerate(("000.jpg", "001.jpg")):
-        image = cv2.imread(str(shared_data / "aprilgrid" / name), cv2.IMREAD_GRAYSCALE)
-        view = detect_grid(
-            image,
-            PHOTO_TARGET,
-            index=index,
-            stamp_ns=index,
-            detection=DetectionOptions(),
-            min_tags=4,
-        )
-        assert view is not None
-        views.append(view)
-    return views, (image.shape[1], image.shape[0])
-
-
-def test_two_real_photos_give_a_plausible_focal_length(photo_views):
-    """Two views of a monitor (phone camera, 3072x4080 portrait): f only, pp fixed, no distortion.
-
-    Measured: f = 2900 px (1-sigma 12 px), RMS 1.28 px; each photo alone gives 2992 and
-    2854 px. A 4:3 phone main camera of about 25-27 mm equivalent focal length has
-    f = 2850-3100 px at this resolution. The RMS above 1 px is what a flat-screen target
-    and an unmodelled distortion leave.
-    """
-    views, size = photo_views
-    assert all(v.corner_count == 144 for v in views)
-    simple = IntrinsicsOptions(
-        fix_principal_point=True, fix_aspect_ratio=True, zero_distortion=True, min_views=1
-    )
-    joint = calibrate_intrinsics(views, size, simple)
-    assert 2600.0 < joint.camera.fx < 3300.0
-    assert joint.camera.fx == joint.camera.fy
-    assert (joint.camera.cx, joint.camera.cy) == ((size[0] - 1) / 2, (size[1] - 1) / 2)
-    assert joint.rms_px < 2.0
-    singles = [calibrate_intrinsics([v], size, simple).camera.fx for v in views]
-    # Each photo alone agrees with the joint estimate to within 5 %.
-    for single in singles:
-        assert abs(single - joint.camera.fx) / joint.camera.fx < 0.05

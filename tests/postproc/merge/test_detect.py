@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from postproc.merge.detect import (
-    DetectionOptions,
     TagDetection,
     detect_tags,
     group_by_target,
@@ -18,57 +17,6 @@ from postproc.merge.synthetic import PlacedTarget, default_camera, look_at, rend
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.cameras import PinholeEquidistant
 from shared.geometry import invert_pose
-
-# The photos show a 6x6 Kalibr grid (ids 0..35) on a monitor; the size does not matter here.
-PHOTO_GRID = AprilGridTarget(tag_rows=6, tag_cols=6, tag_size_m=0.088, tag_spacing_ratio=0.3)
-
-
-@pytest.fixture(scope="module")
-def photos(shared_data):
-    import cv2
-
-    images = {}
-    for name in ("000.jpg", "001.jpg"):
-        image = cv2.imread(str(shared_data / "aprilgrid" / name), cv2.IMREAD_GRAYSCALE)
-        assert image is not None, name
-        images[name] = image
-    return images
-
-
-@pytest.fixture(scope="module")
-def photo_detections(photos):
-    return {name: detect_tags(image) for name, image in photos.items()}
-
-
-@pytest.mark.parametrize("name", ["000.jpg", "001.jpg"])
-def test_real_photos_all_tags_and_subpixel_corners(photos, photo_detections, name):
-    image = photos[name]
-    refined = photo_detections[name]
-    assert [d.tag_id for d in refined] == list(range(36))
-    raw = detect_tags(image, DetectionOptions(subpix=False))
-    lines_refined = line_fit_residuals_px(refined, PHOTO_GRID)
-    lines_raw = line_fit_residuals_px(raw, PHOTO_GRID)
-    assert len(lines_refined) == 24 * 12  # 24 lines of 12 corners
-    # A 12 MP phone photo of a monitor: corners on grid lines to well under a pixel.
-    assert np.median(lines_refined) < 0.5
-    assert np.sqrt(np.mean(lines_refined**2)) < 0.75
-    assert np.median(lines_refined) < 0.6 * np.median(lines_raw)
-    homography = homography_residuals_px(refined, PHOTO_GRID)
-    # Lens distortion and screen curvature make a smooth part of this residual.
-    assert np.sqrt(np.mean(homography**2)) < 1.5
-    assert np.sqrt(np.mean(homography**2)) < np.sqrt(
-        np.mean(homography_residuals_px(raw, PHOTO_GRID) ** 2)
-    )
-
-
-def test_real_photo_corner_order_is_kalibrs(photo_detections):
-    # In 000.jpg the grid is upright: corner 0 bottom-left, 1 bottom-right, 2 top-right.
-    tag = next(d for d in photo_detections["000.jpg"] if d.tag_id == 0)
-    c = tag.corners_px
-    assert c[1, 0] > c[0, 0] and c[2, 0] > c[3, 0]  # x grows to the right
-    assert c[3, 1] < c[0, 1] and c[2, 1] < c[1, 1]  # y (image) grows downwards
-    tag7 = next(d for d in photo_detections["000.jpg"] if d.tag_id == 6)
-    assert tag7.corners_px[0, 1] < c[3, 1]  # row 1 sits above row 0 on the page
 
 
 def _corner_errors(camera, grid, world_from_cam, image):
