@@ -56,6 +56,7 @@ from postproc.depth.sync import (
     fit_depth_sync,
     solve_clock_offset,
     valid_mask,
+    z_rate_prior_sigma_m_per_s,
 )
 from shared.clock import NS_PER_S, ClockModel
 from shared.errors import InputError, StageError
@@ -99,7 +100,8 @@ class DepthOptions:
     fuse: re-optimise the trajectory with depth factors (GTSAM).
     depth_sigma_m: one-sigma error of a depth sample as the depth of the
         trajectory frame (0.1 m resolution, wrist-camera lever arm, waves), m.
-    odometry_sigma_m_per_sqrt_s: VIO position drift for the fusion, m/sqrt(s).
+    odometry_sigma_m_per_sqrt_s: VIO position drift for the fusion, m/sqrt(s);
+        the sync fits a steady z drift under this random walk's prior too.
     odometry_sigma_rad_per_sqrt_s: VIO rotation drift for the fusion, rad/sqrt(s).
     node_interval_s: shortest time between optimised poses in the fusion, s.
     search_step_s: grid step of the coarse offset search, s.
@@ -107,7 +109,9 @@ class DepthOptions:
         the trajectory for an offset to count.
     max_gap_s: trajectory gaps longer than this (tracking lost) hold no depth, s.
     min_depth_range_m: the overlapping profile must span at least this
-        (5-95 percentile), m; flatter profiles cannot give a clock offset.
+        (5-95 percentile), m; 0: no such gate (the default: a profile too flat
+        to give a clock offset is refused when the trajectory explains the
+        depths no better than a constant depth, by min_evidence).
     max_time_sigma_s: a clock offset less certain than this is refused, s.
     min_evidence: a clearly different offset (or another dive) must fit worse
         than the answer by this much (samples x mean Huber cost difference, a
@@ -144,7 +148,7 @@ class DepthOptions:
     search_step_s: float = 1.0
     min_overlap_fraction: float = 0.5
     max_gap_s: float = 5.0
-    min_depth_range_m: float = 1.0
+    min_depth_range_m: float = 0.0
     max_time_sigma_s: float = 5.0
     min_evidence: float = 6.0
     min_overlap_samples: int = 4
@@ -363,6 +367,9 @@ def _fit(
         estimate_drift=options.estimate_drift and time,
         estimate_scale=scale,
         drift_prior_sigma_ppm=options.drift_prior_sigma_ppm,
+        z_rate_sigma_m_per_s=z_rate_prior_sigma_m_per_s(
+            traj_t, options.odometry_sigma_m_per_sqrt_s
+        ),
         max_gap_s=options.max_gap_s,
     )
 
@@ -417,6 +424,7 @@ def _search(
             estimate_drift=options.estimate_drift,
             estimate_scale=options.estimate_scale,
             drift_prior_sigma_ppm=options.drift_prior_sigma_ppm,
+            z_walk_sigma_m_per_sqrt_s=options.odometry_sigma_m_per_sqrt_s,
         )
     except SyncError as error:
         raise StageError(
@@ -501,9 +509,11 @@ def _ambiguity_document(ambiguity: OffsetAmbiguity, dives: list[_DiveData]) -> d
         "runner_up_cost": ambiguity.runner_up_cost,
         "runner_up_depth_offset_m": ambiguity.runner_up_depth_offset_m,
         "evidence": _number(ambiguity.evidence),
+        "flat_evidence": _number(ambiguity.flat_evidence),
         "solutions_compared": ambiguity.solutions,
         "evidence_meaning": "samples x (mean Huber cost of the best clearly different offset - "
-        "that of the answer), costs at cost_sigma_m; null: no other offset fits at all",
+        "that of the answer), costs at cost_sigma_m, plus the difference of their prior costs; "
+        "null: no other offset fits at all; flat_evidence: the same against a constant depth",
     }
 
 
@@ -642,6 +652,7 @@ def _sync_document(
         "depth_offset_sigma_m": _number(sync.depth_offset_sigma_m),
         "depth_scale": sync.depth_scale,
         "depth_scale_sigma": _number(sync.depth_scale_sigma),
+        "z_rate_m_per_s": sync.z_rate_m_per_s,
         "residual_rms_m": _number(sync.residual_rms_m),
         "residual_median_abs_m": _number(float(np.median(np.abs(residual[inside]))))
         if np.any(inside)
@@ -649,7 +660,9 @@ def _sync_document(
         "samples_used": sync.used,
         "inliers": sync.inliers,
         "relation": "dive_time = camera_time + time_offset_s + drift_ppm * 1e-6 * "
-        "(camera_time - reference_time_s); depth_m = depth_offset_m - depth_scale * z",
+        "(camera_time - reference_time_s); depth_m = depth_offset_m - depth_scale * z "
+        "(the sync fitted the samples with + z_rate_m_per_s * (camera time - the trajectory's "
+        "middle) besides: the trajectory's steady z drift, which the fused trajectory removes)",
         "clock": {"source": "camera", "target": "dive computer", **asdict(clock)},
         "coarse_candidates": [asdict(c) for c in candidates],
         "options": asdict(options),

@@ -1008,6 +1008,20 @@ class ClockSolution:
     candidates: list[CoarseCandidate]
 
 
+def z_rate_prior_sigma_m_per_s(
+    traj_t_s: FloatArray, z_walk_sigma_m_per_sqrt_s: float | None
+) -> float | None:
+    """Prior sigma (m/s) of a steady z drift over a trajectory, from its random walk (m/sqrt(s)).
+
+    A random walk of sigma w drifts w sqrt(T) over the trajectory's duration T:
+    a rate of w / sqrt(T). None without a walk or a duration.
+    """
+    duration_s = float(traj_t_s[-1] - traj_t_s[0]) if traj_t_s.size else 0.0
+    if z_walk_sigma_m_per_sqrt_s is None or duration_s <= 0.0:
+        return None
+    return z_walk_sigma_m_per_sqrt_s / math.sqrt(duration_s)
+
+
 def _fitted_solutions(
     traj_t: FloatArray,
     traj_z: FloatArray,
@@ -1146,12 +1160,7 @@ def solve_clock_offset(
         "estimate_scale": estimate_scale,
         "drift_prior_sigma_ppm": drift_prior_sigma_ppm,
     }
-    duration_s = float(traj_t[-1] - traj_t[0]) if traj_t.size else 0.0
-    z_rate_sigma = (
-        None
-        if z_walk_sigma_m_per_sqrt_s is None or duration_s <= 0.0
-        else z_walk_sigma_m_per_sqrt_s / math.sqrt(duration_s)
-    )
+    z_rate_sigma = z_rate_prior_sigma_m_per_s(traj_t, z_walk_sigma_m_per_sqrt_s)
     solutions, coarse, failures = _fitted_solutions(
         traj_t,
         traj_z,
