@@ -163,6 +163,7 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     "test-uddf-export-events.uddf": (IMPORTS, [("2026-08-23T12:00:00", 6, 30.0)]),
     "TestDiveDivingLog5.08.uddf": (IMPORTS, [("2011-05-17T11:01:00", 65, 24.69)]),
     "100.xml": (REFUSED, r"XML that is neither .*\(root element <SUUNTO>; not a dive log"),
+    "TestDiveDM4.xml": (IMPORTS, [("2013-02-02T16:14:08", 179, 22.41)]),
     "test0.xml": (REFUSED, NO_SAMPLES),
     "test24.xml": (REFUSED, r"no <dive> in this Subsurface logbook$"),  # empty on purpose
     "test25.xml": (IMPORTS, [("2011-12-02T06:00:00", 6, 20.0)]),

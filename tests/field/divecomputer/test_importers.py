@@ -503,3 +503,17 @@ def test_csv_odd_line_is_skipped(shared_data: Path, tmp_path: Path) -> None:
     )
     (dive,) = read_logbook(damaged)
     assert dive.stamps_s.size == len(lines) - 4
+
+
+def test_dives_sharing_a_logbook_id_stay_apart(tmp_path: Path) -> None:
+    dive = "<dive date='2020-05-0{day}' time='09:00'><divecomputer model='A' diveid='00000002'>"
+    dive += "<sample time='1:00 min' depth='{depth} m'/></divecomputer></dive>"
+    repeat = dive.format(day=1, depth=1)  # the same dive twice is one dive
+    body = "".join(dive.format(day=d, depth=d) for d in (1, 2, 3)) + repeat
+    path = tmp_path / "ids.ssrf"
+    path.write_text(f"<divelog><dives>{body}</dives></divelog>")
+    dives = read_logbook(path)
+    assert len({d.fingerprint for d in dives}) == 3 and "00000002" not in {
+        d.fingerprint for d in dives
+    }
+    assert len(import_logbook(path, tmp_path / "dives")) == 3
