@@ -463,6 +463,32 @@ def _parse_tum(path: Path) -> None:
 
 
 @functools.cache
+def _svin_seeds() -> list[tuple[str, bytes]]:
+    """SVIn2's pose-graph text (unpadded nanoseconds) and an OKVIS CSV, as those tools write."""
+    rng = np.random.default_rng(10)
+    stamps = T0_NS + np.cumsum(rng.integers(10**7, 4 * 10**8, size=12))
+    svin = ["#timestamp tx ty tz qx qy qz qw"]
+    okvis = ["timestamp, p_WS_W_x, p_WS_W_y, p_WS_W_z, q_WS_x, q_WS_y, q_WS_z, q_WS_w"]
+    for stamp in stamps.tolist():
+        sec, nsec = divmod(stamp, 10**9)
+        q = rng.normal(size=4)
+        numbers = [*rng.normal(size=3), *(q / np.linalg.norm(q))]
+        svin.append(f"{sec}.{nsec} " + " ".join(f"{v:.9f}" for v in numbers))
+        okvis.append(f"{stamp}, " + ", ".join(f"{v:.18e}" for v in numbers))
+    return [
+        ("svin2 pose graph", ("\n".join(svin) + "\n").encode()),
+        ("okvis csv", ("\n".join(okvis) + "\n").encode()),
+    ]
+
+
+def _parse_trajectory_text(path: Path) -> None:
+    from shared.formats.svin import read_trajectory
+    from shared.formats.tum import format_tum
+
+    format_tum(read_trajectory(path).trajectory)
+
+
+@functools.cache
 def _euroc_files() -> dict[str, bytes]:
     import tempfile
 
@@ -681,6 +707,13 @@ TARGETS: dict[str, Target] = {
             _tum_seeds,
             functools.partial(mut.mutate_table, delimiter=" "),
             _parse_tum,
+        ),
+        Target(
+            "trajectory text",
+            "traj.txt",
+            _svin_seeds,
+            functools.partial(mut.mutate_table, delimiter=" "),
+            _parse_trajectory_text,
         ),
         _euroc_target("mav0/imu0/data.csv", mut.mutate_table),
         _euroc_target("mav0/cam0/data.csv", mut.mutate_table),
