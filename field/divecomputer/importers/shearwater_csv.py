@@ -80,7 +80,7 @@ def read_shearwater_csv(path: Path) -> list[DiveProfile]:
             f"{path}:1: not a Shearwater Cloud CSV (expected a summary header with 'Start Date')"
         )
     summary_header = [c.strip() for c in rows[0]]
-    summary = {}
+    summary: dict[str, str] = {}
     for name, value in zip(summary_header, rows[1], strict=False):
         summary.setdefault(name, value.strip())
     sample_header = [c.strip() for c in rows[2]]

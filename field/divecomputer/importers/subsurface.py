@@ -55,8 +55,9 @@ def _start_iso(element: Any, inherited: str | None) -> str | None:
 
 
 def _samples(
-    computer: Any, where: str, problems: SampleProblems
+    computer: Any, problems: SampleProblems
 ) -> tuple[list[float], list[float], list[float]]:
+    """(offsets s, depths m, temperatures degC) of the readable samples of `computer`."""
     offsets: list[float] = []
     depths: list[float] = []
     temps: list[float] = []
@@ -118,7 +119,7 @@ def read_subsurface(path: Path) -> list[DiveProfile]:
                 reading.skip(where, "no date")
                 continue
             problems = SampleProblems()
-            offsets, depths, temps = _samples(computer, where, problems)
+            offsets, depths, temps = _samples(computer, problems)
             reading.warn_samples(where, problems)
             if not offsets:
                 reading.skip_unreadable(where, problems)
