@@ -390,7 +390,9 @@ class _ChapterImu:
 
 
 # An IMU that starts more than this after video frame 0 is said in a warning: four samples at
-# 200 Hz, above the few ms by which the TSMP fit's start (HERO5-7) is uncertain (karma.mp4: 11 ms).
+# 200 Hz, above the few ms by which the start the TSMP fit gives (HERO5-7) moves with the payloads
+# it is fitted to (karma.mp4 starts 11 ms after its first frame; 2-3 ms change with 2 of its 13
+# payloads lost).
 _LATE_IMU_NS = 20_000_000
 
 
