@@ -100,8 +100,18 @@ def read_subsurface(path: Path) -> list[DiveProfile]:
         )
     serials = _serials(root)
     reading = LogbookReading(path)
-    for dive_index, dive in enumerate(descendants(root, "dive"), start=1):
-        where_dive = f"{path}: dive {field_text(dive, 'number') or dive_index}"
+    dives = descendants(root, "dive")
+    numbers = [field_text(dive, "number") for dive in dives]
+    for dive_index, (dive, number) in enumerate(zip(dives, numbers, strict=True), start=1):
+        # Dives are named by their number; by their place in the file when it has none or
+        # shares it with another dive (hand-edited logbooks repeat numbers).
+        if number is None:
+            label = str(dive_index)
+        elif numbers.count(number) == 1:
+            label = number
+        else:
+            label = f"#{dive_index} (number {number})"
+        where_dive = f"{path}: dive {label}"
         try:
             dive_start = _start_iso(dive, None)
         except ValueError as error:
