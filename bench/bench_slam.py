@@ -28,7 +28,9 @@ CPU second), the fastest keyframe-to-keyframe speed, and the Sim(3) ATE of
 our keyframe camera centres against an independent COLMAP reconstruction of
 the same keyframe images (pycolmap: intrinsics fixed to the SLAM's
 calibration, SIFT, sequential matching, incremental mapper, largest model),
-as a percentage of our keyframe path. For euroc_mh01_cam0 also the Sim(3) ATE
+as a percentage of our keyframe path. For karma, also against the drone's own
+position log in the file (GPMF LNED, local NED from its GPS/IMU filter), with
+the scale factor our path needs. For euroc_mh01_cam0 also the Sim(3) ATE
 of the visual-only body path against the Leica prism positions (the 15 cm
 prism lever arm is not removed: the path's scale is arbitrary). A recording
 that fails is a row with its error.
@@ -425,6 +427,24 @@ def _leica(path: Path) -> Trajectory:
     return Trajectory(np.array(stamps, dtype=np.int64), poses)
 
 
+def _drone_positions(video: Path, session: Path) -> Trajectory | None:
+    """A Karma drone's own position log (GPMF LNED, local NED, metres) on the session clock;
+    None when the clip holds none."""
+    import yaml
+
+    from field.gopro.telemetry import read_telemetry
+
+    telemetry = read_telemetry(video, keys={"LNED"})
+    stream = next((v for k, v in telemetry.streams.items() if k.startswith("LNED")), None)
+    if stream is None or stream.samples < 3:
+        return None
+    document = yaml.safe_load((session / "session.yaml").read_text(encoding="utf-8"))
+    start_ns = int(document["chapters"][0]["start_ns"])
+    poses = np.tile(np.eye(4), (stream.samples, 1, 1))
+    poses[:, :3, 3] = stream.values[:, 1:4]  # time, x, y, z, vx, vy, vz
+    return Trajectory(start_ns + stream.times_ns.astype(np.int64), poses)
+
+
 def _path_m(positions: FloatArray) -> float:
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
 
@@ -481,6 +501,15 @@ def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict
             row["colmap_median_pct"] = 100.0 * float(np.median(result.errors_m)) / _path_m(ours)
     except Exception as error:  # a bench row, not a crash
         row["colmap_error"] = f"{type(error).__name__}: {error}"
+    if recording.gopro:
+        drone = _drone_positions(recording.source, source)
+        if drone is not None:
+            inside = drone.slice_time(int(trajectory.stamps_ns[0]), int(trajectory.stamps_ns[-1]))
+            result = ate(trajectory.interpolate(inside.stamps_ns), inside, align="sim3")
+            row["drone_ate_m"] = result.rmse_m
+            row["drone_ate_pct"] = 100.0 * result.rmse_m / inside.path_length_m()
+            row["drone_path_m"] = inside.path_length_m()
+            row["drone_scale"] = result.scale
     if recording.leica is not None:
         leica = _leica(recording.leica).slice_time(
             int(trajectory.stamps_ns[0]), int(trajectory.stamps_ns[-1])
@@ -517,6 +546,12 @@ def _format_real(row: dict[str, object]) -> str:
     )
     if "colmap_error" in row:
         text += f" COLMAP FAILED: {row['colmap_error']}"
+    if "drone_ate_m" in row:
+        text += (
+            f"\n{'':<16} drone's own position log (LNED) Sim(3) ATE "
+            f"{number('drone_ate_m', '.2f')} m = {number('drone_ate_pct', '.2f')} % of "
+            f"{number('drone_path_m', '.1f')} m (scale to the log {number('drone_scale', '.3f')})"
+        )
     if "leica_ate_m" in row:
         text += (
             f"\n{'':<16} Leica prism Sim(3) ATE {number('leica_ate_m', '.3f')} m = "
