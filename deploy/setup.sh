@@ -8,9 +8,15 @@ cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
 VENV=${VENV:-.venv}
 
-mapfile -t pkgs < <(grep -v -E '^\s*(#|$)' deploy/system-packages.txt || true)
+# A line is a package name, optionally followed by a command that, when already on PATH,
+# counts as the package (NodeSource's nodejs ships npm without Debian's npm package).
+mapfile -t lines < <(grep -v -E '^\s*(#|$)' deploy/system-packages.txt || true)
 missing=()
-for p in "${pkgs[@]}"; do
+for line in "${lines[@]}"; do
+    read -r p command _ <<<"$line"
+    if [ -n "${command:-}" ] && command -v "$command" >/dev/null; then
+        continue
+    fi
     dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
 done
 if [ ${#missing[@]} -gt 0 ]; then
@@ -38,4 +44,9 @@ for gui in opencv-python opencv-contrib-python; do
             "$(grep -o 'opencv-python-headless==[0-9.]*' pyproject.toml)"
     fi
 done
+# The 3D viewer of report.html: three.js pinned in package.json / package-lock.json,
+# bundled into node_modules/.wreckmap/three-bundle.js, which the report inlines.
+# (--ignore-scripts: esbuild's optional postinstall only checks its binary.)
+npm ci --no-audit --no-fund --ignore-scripts --loglevel=error
+npm run --silent build
 echo "setup: environment ready in $VENV"
