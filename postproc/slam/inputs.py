@@ -4,7 +4,8 @@ Both readers satisfy the small `SlamInput` protocol; `open_input` picks one
 from what the folder holds (a registry, not an if-chain at the call site).
 
 - EuRoC ASL folder (`mav0/cam0`, `mav0/imu0`, optional sensor.yaml files):
-  images are read from disk one at a time.
+  images are read from disk one at a time. Without `imu0` (a camera-only cut)
+  only the visual-only path (`--no-imu`) can run on it.
 - Session folder (field output): `recording.mcap` or `recording_NNN.mcap`,
   with `calib/camchain.yaml` and `calib/imu.yaml`. Images come from
   `/cam0/image` (JPEG/PNG stills) or `/cam0/video` (H.264/H.265 packets,
@@ -137,6 +138,40 @@ class EurocInput:
                 raise InputError(f"{path}: not a readable image (expected PNG or JPEG)")
             png = encoded if path.suffix.lower() == ".png" else None
             yield Frame(int(stamp), image, png)
+
+
+class EurocCameraInput(EurocInput):
+    """An EuRoC folder with cam0 but no imu0 (a camera-only cut): for the visual-only path.
+
+    Its IMU is empty; the stage refuses it for visual-inertial SLAM with a clear error.
+    """
+
+    def __init__(self, folder: Path) -> None:
+        # shared.formats.euroc.read_euroc requires imu0; its cam0 readers do not.
+        from shared.formats.euroc import (
+            EurocDataset,
+            _read_camera_csv,
+            _read_camera_yaml,
+        )
+
+        self.folder = folder
+        mav = folder / "mav0" if (folder / "mav0").is_dir() else folder
+        stamps, paths = _read_camera_csv(mav / "cam0" / "data.csv")
+        yaml_path = mav / "cam0" / "sensor.yaml"
+        camera = _read_camera_yaml(yaml_path, np.eye(4)) if yaml_path.is_file() else None
+        empty = np.zeros((0, 3))
+        self._data = EurocDataset(
+            image_stamps_ns=stamps,
+            image_paths=paths,
+            imu_stamps_ns=np.zeros(0, dtype=np.int64),
+            gyro_rad_s=empty,
+            accel_m_s2=empty,
+            groundtruth=None,
+            camera=camera,
+            imu_noise=None,
+        )
+        self._imu = ImuSamples(np.zeros(0, dtype=np.int64), empty, empty)
+        self.imu_cleaning = ImuCleaning()
 
 
 class SessionInput:
@@ -280,6 +315,11 @@ def _is_euroc(folder: Path) -> bool:
     return (mav / "cam0").is_dir() and (mav / "imu0").is_dir()
 
 
+def _is_euroc_camera_only(folder: Path) -> bool:
+    mav = folder / "mav0" if (folder / "mav0").is_dir() else folder
+    return (mav / "cam0" / "data.csv").is_file()
+
+
 def _is_session(folder: Path) -> bool:
     return any(folder.glob("recording*.mcap"))
 
@@ -288,6 +328,7 @@ def _is_session(folder: Path) -> bool:
 INPUT_KINDS: dict[str, tuple[Callable[[Path], bool], Callable[[Path], SlamInput]]] = {
     "euroc": (_is_euroc, EurocInput),
     "session": (_is_session, SessionInput),
+    "euroc camera only": (_is_euroc_camera_only, EurocCameraInput),
 }
 
 

@@ -268,6 +268,11 @@ def run(
         LOG.info("%s: SLAM result already there (pass overwrite to redo it)", out)
         return out
     source = open_input(Path(input_path))
+    if options.use_imu and len(source.imu) < 2:
+        raise InputError(
+            f"{source.name}: no IMU data in the input (expected mav0/imu0 or /imu0); "
+            "run the visual-only path (--no-imu)"
+        )
     calibration, noise = _resolve_calibration(
         source,
         Path(camchain) if camchain is not None else None,
@@ -338,7 +343,11 @@ def run(
         if options.max_frames is not None:
             total = min(total, options.max_frames)
         tracking_failures = 0
-        coverage = ImuCoverage.of(source.imu, round(calibration.timeshift_cam_imu_s * 1e9))
+        coverage = (
+            ImuCoverage.of(source.imu, round(calibration.timeshift_cam_imu_s * 1e9))
+            if options.use_imu
+            else None
+        )
         previous_stamp: int | None = None
         first_stamp: int | None = None
         last_stamp = 0
@@ -347,8 +356,6 @@ def run(
         ):
             if options.max_frames is not None and count >= options.max_frames:
                 break
-            if options.use_imu and not coverage.covers(frame.stamp_ns):
-                continue  # the IMU starts after or ends before this image
             rotation = (
                 _gyro_rotation(estimator, calibration, previous_stamp, frame.stamp_ns)
                 if previous_stamp is not None and isinstance(estimator, SlamEstimator)
@@ -359,13 +366,18 @@ def run(
             )
             if len(tracks.track_ids) < options.min_tracks_ok:
                 tracking_failures += 1
+            previous_stamp = frame.stamp_ns
+            if coverage is not None and not coverage.covers(frame.stamp_ns):
+                # The IMU starts after or ends before this image: tracked (so the tracks
+                # run on), not estimated.
+                continue
             decision = estimator.process(tracks, functools.partial(_describe, frontend, tracks))
             if decision.is_keyframe:
                 _save_keyframe(keyframe_dir, frame.stamp_ns, frame.image, frame.encoded_png)
-            previous_stamp = frame.stamp_ns
             first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
             last_stamp = frame.stamp_ns
-        coverage.warn(source.name)
+        if coverage is not None:
+            coverage.warn(source.name)
         try:
             result = estimator.finish()
         except StageError as error:
@@ -412,7 +424,7 @@ def run(
                 "real_time_factor_cpu": duration_s / cpu_time_s if cpu_time_s > 0 else 0.0,
                 "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
                 "tracking_failures": tracking_failures,
-                **coverage.as_stats(),
+                **(coverage.as_stats() if coverage is not None else {}),
                 **source.imu_cleaning.as_stats(),
                 "frontend_width_px": frontend.image_size[0],
                 "lost_tracks": frontend.lost_tracks,

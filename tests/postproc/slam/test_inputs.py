@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from postproc.slam.frontend import FrontendOptions
-from postproc.slam.inputs import EurocInput, SessionInput, open_input
+from postproc.slam.inputs import EurocCameraInput, EurocInput, SessionInput, open_input
 from postproc.slam.stage import SlamOptions, run
 from shared.archive import ArchiveWriter, CompressedImage, Imu
 from shared.calibration.kalibr import write_camchain, write_imu_yaml
@@ -141,3 +142,16 @@ def test_calibration_is_guess_follows_session_yaml(
 ) -> None:
     source = open_input(_tiny_session(tmp_path / "s", session_yaml))
     assert source.calibration_is_guess is expected
+
+
+def test_a_camera_only_euroc_folder_runs_visual_only(wall_euroc: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "cam_only"
+    shutil.copytree(wall_euroc / "mav0" / "cam0", folder / "mav0" / "cam0")
+    source = open_input(folder)
+    assert isinstance(source, EurocCameraInput)
+    assert len(source.imu) == 0 and source.frame_count == 80
+    with pytest.raises(InputError, match=r"cam_only: no IMU data .*--no-imu"):
+        run(SlamOptions(), folder, tmp_path / "vio")
+    options = SlamOptions(frontend=FrontendOptions(width_px=0), use_imu=False, max_frames=40)
+    out = run(options, folder, tmp_path / "vo")
+    assert len(read_tum(out / "trajectory.tum")) > 20
