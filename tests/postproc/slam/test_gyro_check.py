@@ -234,3 +234,17 @@ def test_no_pairs_at_all_is_unknown() -> None:
     empty = np.zeros(0, dtype=np.int64)
     check = _check(np.zeros((0, 3, 3)), empty, empty, _imu(motion))
     assert check.verdict == "unknown" and check.pairs == 0
+
+
+def test_an_imu_that_starts_late_and_ends_early_uses_the_pairs_it_covers() -> None:
+    """Real cameras start the IMU after the first frame (59 ms on one GoPro clip)."""
+    motion = _turning_motion()
+    starts, ends = _frame_pairs()
+    visual = _visual(motion, starts, ends, shift_s=-0.02, gain=1.2, noise_px=0.3)
+    imu = _imu(motion)
+    keep = (imu.stamps_ns >= START_NS + 59_000_000) & (imu.stamps_ns <= ends[-1] - 300_000_000)
+    late = ImuSamples(imu.stamps_ns[keep], imu.gyro_rad_s[keep], imu.accel_m_s2[keep])
+    check = _check(visual, starts, ends, late)
+    assert check.verdict == "rigid", check.reason
+    assert check.focal_scale == pytest.approx(1.2, rel=0.02)
+    assert check.time_shift_s == pytest.approx(-0.02, abs=0.004)
