@@ -80,9 +80,11 @@ from field.gopro.mp4 import (
 from field.gopro.salvage import salvage_mdat
 from field.gopro.telemetry import GPMFSample, assemble_telemetry, iter_gpmf_samples
 from shared.archive import (
+    HEALTH_TOPIC,
     ArchiveWriter,
     CompressedVideo,
     Imu,
+    RecorderEvent,
     SessionInfo,
     imu_topic,
     video_topic,
@@ -603,13 +605,9 @@ def _check_same_recording(chapters: Sequence[Chapter], mp4s: Sequence[MP4File | 
                 f"firmware, codec or frame size differ from {reference[0].name}: "
                 f"{_describe(key)} vs {_describe(reference[1])})"
             )
-    times = [(c, m.creation_time) for c, m in zip(chapters, mp4s, strict=True) if m is not None]
-    for (a, ta), (b, tb) in itertools.pairwise(times):
-        if ta is not None and tb is not None and tb < ta:
-            raise InputError(
-                f"{b.path.name}: created {tb.isoformat()}, before chapter {a.path.name} "
-                f"({ta.isoformat()}): chapters from two different recordings?"
-            )
+    # Creation times that run backwards between chapters of one camera and file number are
+    # a camera clock step (GPS, app sync), not another recording: `_write_streams` keeps
+    # the media clock and reports it.
 
 
 def _describe(key: tuple[Any, ...]) -> str:
@@ -619,6 +617,32 @@ def _describe(key: tuple[Any, ...]) -> str:
 
 
 # ------------------------------------------------------------------------------- import
+
+
+CHAPTER_CLOCK_TOLERANCE_NS = 2_000_000_000
+"""mvhd creation times have 1 s resolution: a chapter's creation time further than this from
+both readings GoPro writes (its own start, or the recording's start) is a clock step."""
+
+
+def _mp4_creation_ns(mp4: MP4File | None) -> int | None:
+    if mp4 is None or mp4.creation_time is None:
+        return None
+    when = mp4.creation_time
+    return int(when.timestamp()) * NS_PER_S + when.microsecond * 1000
+
+
+def chapter_clock_step_ns(
+    created_ns: int | None, chapter_start_ns: int, recording_start_ns: int
+) -> int | None:
+    """How far a chapter's creation time is from where the media clock puts it (ns), or
+    None when it agrees: with its own start on the joined media clock, or with the
+    recording's start (cameras that stamp every chapter with it), to 2 s."""
+    if created_ns is None:
+        return None
+    for reading in (chapter_start_ns, recording_start_ns):
+        if abs(created_ns - reading) <= CHAPTER_CLOCK_TOLERANCE_NS:
+            return None
+    return created_ns - chapter_start_ns
 
 
 def _creation_ns(mp4s: Sequence[MP4File | None], chapters: Sequence[Chapter]) -> tuple[int, str]:
@@ -787,8 +811,11 @@ def import_recording(
         )
         try:
             chapter_rows, keyframe_stamps, imu_count = _write_streams(
-                writer, ready, imus, creation_ns, options, total_bytes, warnings
-            )
+                writer, ready, imus, creation_ns, options, total_bytes, warnings,
+                chapter_created_ns={
+                    c.path: _mp4_creation_ns(m) for c, m in zip(chapters, mp4s, strict=True)
+                },
+            )  # fmt: skip
             imu_rate = _imu_rate(imus)
             calib_rows = _write_calibration(
                 tmp, options, camera, width=width, height=height, imu_rate_hz=imu_rate
@@ -869,9 +896,13 @@ def _write_streams(
     options: ImportOptions,
     total_bytes: int,
     warnings: list[str],
+    *,
+    chapter_created_ns: dict[Path, int | None] | None = None,
 ) -> tuple[list[dict[str, Any]], list[int], int]:
     """Write every chapter's packets and IMU samples; returns chapter rows, keyframe log times,
-    IMU sample count."""
+    IMU sample count. A chapter whose creation time disagrees with the joined media clock
+    (the camera's clock stepped) is reported in its row, the warnings and on /health; the
+    stamps follow the media clock."""
     vtopic = video_topic(options.camera_index)
     itopic = imu_topic(options.imu_index)
     frame_id = f"cam{options.camera_index}"
@@ -886,6 +917,33 @@ def _write_streams(
     try:
         for video, imu in zip(videos, imus, strict=True):
             chapter_start_ns = creation_ns + round(offset * NS_PER_S)
+            created = (chapter_created_ns or {}).get(video.chapter.path)
+            step_ns = None
+            if offset > 0:
+                step_ns = chapter_clock_step_ns(created, chapter_start_ns, creation_ns)
+            if step_ns is not None:
+                step_s = step_ns / NS_PER_S
+                warnings.append(
+                    f"{video.chapter.path.name}: created {step_s:+.1f} s away from where the "
+                    "previous chapters' durations put it (the camera clock stepped?); its "
+                    "stamps follow the media clock"
+                )
+                details = {
+                    "chapter": video.chapter.path.name,
+                    "step_s": round(step_s, 3),
+                    "created_ns": created,
+                    "media_clock_ns": chapter_start_ns,
+                }
+                writer.write(
+                    HEALTH_TOPIC,
+                    RecorderEvent(
+                        stamp_ns=chapter_start_ns,
+                        frame_id=f"cam{options.camera_index}",
+                        kind="clock_step",
+                        yaml_text=yaml.safe_dump(details),
+                    ),
+                    log_time_ns=chapter_start_ns,
+                )
             pts = chapter_start_ns + video.pts_ns
             b_frames = not np.array_equal(video.pts_ns, video.dts_ns)
             log_times = chapter_start_ns + (video.dts_ns if b_frames else video.pts_ns)
@@ -983,6 +1041,7 @@ def _write_streams(
                     ),
                     "video_bytes": video.video_bytes,
                     "finalised": video.track is not None,
+                    "clock_step_s": None if step_ns is None else round(step_ns / NS_PER_S, 3),
                 }
             )
             offset += video.duration
