@@ -249,7 +249,10 @@ def clock_step(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) ->
     (path,) = report.files
     logs = np.array([r.log_time_ns for r in iter_records_salvage(path)], dtype=np.int64)
     backwards = int(np.count_nonzero(np.diff(logs) < 0))
-    imu = imu_of(path)
+    from shared.archive import ArchiveReader
+
+    with ArchiveReader(path) as reader:
+        imu = reader.read_imu("/imu0").stamps_ns  # sensor stamps: receive times jitter
     holes = int(np.count_nonzero(np.diff(imu) * 1e-9 > 3 / IMU_HZ))
     steps = [e.details["step_s"] for e in inspect_file(path).clock_steps]
     if len(steps) != 1 or abs(steps[0] - step_s) > 0.1:
