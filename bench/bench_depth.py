@@ -19,8 +19,15 @@ rule (least robust scale) and the current one (ambiguity measured, clock prior
 when needed) return a wrong offset without saying so, refuse, or need the prior.
 Every "ours" above also counts the answers flagged ambiguous (target: none on
 long dives).
+Part 5 (issue 21): long flat dives, 20-40 min of trajectory within 0.5, 1 or
+2 m of depth, clock error of minutes plus a zone step, +-50 ppm, VIO z drifting
+0.4 % of the distance swum with a 5 cm wobble; ours as the stage runs it (with
+its wall-clock prior) and the paper's method (told the zone) on the same dives.
+Then the targets over parts 1 and 5 together: median time error <= 0.2 s,
+refusals <= 5 % of the dives longer than 20 minutes, and no answer more than
+5 s off where the paper's method is within 5 s.
 
-Quick run: --seeds 1 --short-seeds 10.
+Quick run: --seeds 1 --short-seeds 10 --flat-seeds 2.
 """
 
 from __future__ import annotations
@@ -47,6 +54,8 @@ from postproc.depth.sync import (
     fit_depth_sync,
     solve_clock_offset,
 )
+
+WRONG_S = 5.0  # an answer further off than this is wrong (the issue's measure)
 
 OFFSETS_S = (29.91, 289.8, 3 * 3600.0 + 17.3, -9 * 3600.0 - 41.6)
 DRIFTS_PPM = (0.0, 50.0, -50.0)
@@ -77,16 +86,30 @@ def ours(traj_t, traj_z, dive_t, depth) -> DepthSync:
     return solution.sync
 
 
+def _old_candidates(traj_t, traj_z, dive_t, depth) -> list[float]:
+    """The coarse candidates of then: raw z and depths, the 5 best grid offsets 10 s apart."""
+    coarse = coarse_offset_search(
+        traj_t, traj_z, dive_t, depth, max_offset_s=15 * 3600.0, smooth_s=0.0, despike_depth=False
+    )
+    picked: list[float] = []
+    for index in np.argsort(coarse.rms_m, kind="stable"):
+        if len(picked) >= 5:
+            break
+        if all(abs(coarse.offsets_s[index] - p) >= 10.0 for p in picked):
+            picked.append(float(coarse.offsets_s[index]))
+    return picked
+
+
 def old_rule(traj_t, traj_z, dives, min_depth_range_m) -> DepthSync | None:
     """The selection before ambiguity was measured: least robust scale over every candidate."""
     best = None
     for dive_t, depth in dives:
         try:
-            coarse = coarse_offset_search(traj_t, traj_z, dive_t, depth, max_offset_s=15 * 3600.0)
+            candidates = _old_candidates(traj_t, traj_z, dive_t, depth)
         except SyncError:
             continue
-        for c in coarse.candidates:
-            fit = fit_depth_sync(traj_t, traj_z, dive_t, depth, initial_offset_s=c.offset_s)
+        for offset_s in candidates:
+            fit = fit_depth_sync(traj_t, traj_z, dive_t, depth, initial_offset_s=offset_s)
             if best is None or fit.robust_scale_m < best[0].robust_scale_m:
                 best = (fit, dive_t, depth)
     if best is None:
@@ -103,7 +126,8 @@ def time_error_s(sync: DepthSync, sim: SyntheticDive, traj_t: np.ndarray) -> flo
     return float(np.sqrt(np.mean((sync.dive_time_s(traj_t) - true) ** 2)))
 
 
-def part_sync(seeds: int) -> None:
+def part_sync(seeds: int) -> list[tuple[float, bool, float]]:
+    """Part 1; returns (our time error s, refused, the paper's time error s) per dive."""
     print("Part 1: clock sync, no VIO drift (errors: time RMS over the trajectory, s; depth, m)")
     header = (
         f"{'seed':>4} {'offset_s':>10} {'drift':>6} | {'ours_t':>7} {'paper_t':>7} "
@@ -112,12 +136,14 @@ def part_sync(seeds: int) -> None:
     print(header)
     print("-" * len(header))
     rows = []
+    records = []
     for seed in range(seeds):
         for offset in OFFSETS_S:
             for drift in DRIFTS_PPM:
                 sim = simulate_dive(seed=100 + seed, time_offset_s=offset, drift_ppm=drift)
                 traj_t, traj_z, dive_t, depth = relative(sim)
                 start = time.perf_counter()
+                flagged = len(FLAGGED)
                 a = ours(traj_t, traj_z, dive_t, depth)
                 t_ours = time.perf_counter() - start
                 start = time.perf_counter()
@@ -131,6 +157,7 @@ def part_sync(seeds: int) -> None:
                     abs(b.depth_offset_m - sim.depth_offset_m),
                 )
                 rows.append(row)
+                records.append((row[0], len(FLAGGED) > flagged, row[1]))
                 print(
                     f"{seed:>4} {offset:>10.1f} {drift:>6.0f} | {row[0]:>7.3f} {row[1]:>7.3f} "
                     f"{row[1] / row[0]:>6.1f} | {row[2]:>7.3f} {row[3]:>7.3f} | "
@@ -157,6 +184,116 @@ def part_sync(seeds: int) -> None:
     print(
         f"target (time >= 3x better, depth <= 0.05 m): "
         f"{'met' if ratio >= 3.0 and arr[:, 2].max() <= 0.05 else 'NOT met'}"
+    )
+    return records
+
+
+FLAT_RANGES_M = (0.5, 1.0, 2.0)
+
+
+def part_flat(seeds: int) -> list[tuple[float, bool, float]]:
+    """Part 5: long flat dives; returns (our time error s, refused, the paper's) per dive."""
+    print(
+        "\nPart 5: long flat dives (issue 21): 20-40 min trajectories within 0.5-2 m of depth, "
+        "10 s samples, 0.1 m steps, +-50 ppm, VIO z drift 0.4 % of the distance + 5 cm wobble;"
+        " ours with the stage's clock prior (+-300 s, 900 s zone steps); time error s, world z"
+        " RMSE after the shift alone (VIO drift kept) m"
+    )
+    header = (
+        f"{'range':>5} {'seed':>4} {'min':>4} {'offset_s':>9} {'ppm':>4} | {'ours_t':>8} "
+        f"{'paper_t':>8} | {'ours_d':>6} {'paper_d':>7} | {'evid':>5} {'flat':>5} | note"
+    )
+    print(header)
+    print("-" * len(header))
+    prior = ClockPrior(window_s=300.0, zone_step_s=900.0)
+    records = []
+    depth_errors = []
+    for bottom_range in FLAT_RANGES_M:
+        for seed in range(seeds):
+            rng = np.random.default_rng([21, int(10 * bottom_range), seed])
+            minutes = float(rng.uniform(20.0, 40.0))
+            zone = float(rng.choice([0.0, 3 * 3600.0, -9 * 3600.0]))
+            offset = zone + float(rng.uniform(-600.0, 600.0))
+            drift = float(rng.uniform(-50.0, 50.0))
+            sim = simulate_dive(
+                seed=500 + 10 * seed + int(10 * bottom_range),
+                time_offset_s=offset,
+                drift_ppm=drift,
+                trajectory_duration_s=60.0 * minutes,
+                dive_duration_s=60.0 * minutes + 900.0,
+                bottom_range_m=bottom_range,
+                vio_z_drift_per_m=0.004,
+                vio_z_wobble_m=0.05,
+            )
+            traj_t, traj_z, dive_t, depth = relative(sim)
+            solution = solve_clock_offset(
+                traj_t, traj_z, [(dive_t, depth)], max_offset_s=15 * 3600.0, prior=prior
+            )
+            a = solution.sync
+            b = paper_depth_sync(traj_t, traj_z, dive_t, depth, prior_offset_s=zone)
+            ours_t, paper_t = time_error_s(a, sim, traj_t), time_error_s(b, sim, traj_t)
+            refused = solution.ambiguity.ambiguous
+            # World z RMSE along the trajectory after the shift alone (the VIO's
+            # drift stays in: the depth factors remove it), m.
+            true_z = sim.truth_world.positions[:, 2]
+            ours_d = float(np.sqrt(np.mean((a.world_z_m(traj_z) - true_z) ** 2)))
+            paper_d = float(np.sqrt(np.mean((b.world_z_m(traj_z) - true_z) ** 2)))
+            if not refused:
+                depth_errors.append((ours_d, paper_d))
+            records.append((ours_t, refused, paper_t))
+            note = "refused: " + "; ".join(solution.ambiguity.reasons) if refused else ""
+            if not refused and ours_t > WRONG_S:
+                note = "WRONG"
+            if solution.prior_used and not refused:
+                note += " (through the clock prior)"
+            print(
+                f"{bottom_range:>5.1f} {seed:>4} {minutes:>4.0f} {offset:>9.1f} {drift:>4.0f} | "
+                f"{ours_t:>8.3f} {paper_t:>8.2f} | {ours_d:>6.3f} {paper_d:>7.3f} | "
+                f"{solution.ambiguity.evidence:>5.0f} {solution.ambiguity.flat_evidence:>5.0f} | "
+                f"{note[:90]}"
+            )
+    arr = np.array([(t, r, p) for t, r, p in records], dtype=float)
+    answered = arr[:, 1] == 0
+    print("-" * len(header))
+    print(
+        f"flat dives: {arr.shape[0]}, refused {int((~answered).sum())}, wrong (> {WRONG_S:.0f} s) "
+        f"{int(((arr[:, 0] > WRONG_S) & answered).sum())}; median time error ours "
+        f"{np.median(arr[answered, 0]):.3f} s, paper {np.median(arr[:, 2]):.3f} s; paper wrong "
+        f"{int((arr[:, 2] > WRONG_S).sum())}"
+    )
+    if depth_errors:
+        d = np.array(depth_errors)
+        print(
+            f"world z RMSE after the shift alone (the VIO drift, up to 2.9 m, is the depth "
+            f"factors' to remove): median ours {np.median(d[:, 0]):.3f} m, paper "
+            f"{np.median(d[:, 1]):.3f} m"
+        )
+    return records
+
+
+def targets(part1: list[tuple[float, bool, float]], flat: list[tuple[float, bool, float]]) -> None:
+    """The issue's targets over today's dives and the flat ones together (all > 20 min)."""
+    arr = np.array(part1 + flat, dtype=float)
+    answered = arr[:, 1] == 0
+    median = float(np.median(arr[answered, 0])) if answered.any() else float("nan")
+    refused = float(np.mean(~answered))
+    paper_right = arr[:, 2] <= WRONG_S
+    wrong_where_paper_right = int(np.sum(answered & (arr[:, 0] > WRONG_S) & paper_right))
+    wrong = int(np.sum(answered & (arr[:, 0] > WRONG_S)))
+    print(
+        f"\nTargets over parts 1 and 5 ({arr.shape[0]} dives, all longer than 20 min; "
+        f"{len(part1)} + {len(flat)}):"
+    )
+    verdict = {True: "met", False: "NOT met"}
+    print(f"  median time error {median:.3f} s (target <= 0.2 s): {verdict[median <= 0.2]}")
+    print(
+        f"  refused {int((~answered).sum())} = {100 * refused:.1f} % (target <= 5 %): "
+        f"{verdict[refused <= 0.05]}"
+    )
+    print(
+        f"  wrong (> {WRONG_S:.0f} s off) where the paper's method is right: "
+        f"{wrong_where_paper_right} (target 0): {verdict[wrong_where_paper_right == 0]}"
+        f"; wrong at all: {wrong}"
     )
 
 
@@ -398,8 +535,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--short-seeds", type=int, default=50, help="Part 4 survey seeds")
+    parser.add_argument("--flat-seeds", type=int, default=8, help="Part 5 seeds per depth range")
     args = parser.parse_args()
-    part_sync(args.seeds)
+    part1 = part_sync(args.seeds)
     part_fusion(args.seeds)
     part_real_shape(args.seeds)
     print(
@@ -409,6 +547,8 @@ def main() -> None:
     for reason in FLAGGED:
         print(f"  flagged: {reason}")
     part_short_dives(args.short_seeds)
+    flat = part_flat(args.flat_seeds)
+    targets(part1, flat)
 
 
 if __name__ == "__main__":

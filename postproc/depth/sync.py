@@ -638,8 +638,8 @@ def offset_profile(
     For each offset centre +- half_width (every `step_s`), the depth offset
     and the z rate (as in `fit_depth_sync`, scale 1, drift held) are fitted
     by a few reweighting steps of Huber least squares at `noise_sigma_m`; the
-    cost is the mean Huber loss of the samples inside the trajectory plus the
-    rate prior's share (inf with fewer than 3 samples). Gauss-Newton from a
+    cost is the mean Huber loss of the samples inside the trajectory at every
+    offset of the grid, plus the rate prior's share (inf with fewer than 3). Gauss-Newton from a
     coarse candidate follows its first step wherever the cost is lower, and
     with z known only through 10 s samples the cost has minima a bob period
     apart: a full step from a good start can land in the next one. This
@@ -660,6 +660,9 @@ def offset_profile(
     # (offset, sample) arrays: camera times, validity, e = depth + z.
     u = (dive_t[None, :] - offsets[:, None]) / (1.0 + drift_ppm * 1e-6)
     valid = valid_mask(traj_t, u.ravel(), max_gap_s=max_gap_s).reshape(u.shape)
+    # The same samples for every offset (those inside the trajectory at all of
+    # them), so that no offset wins by leaving a bad sample out.
+    valid = np.broadcast_to(valid.all(axis=0), valid.shape)
     e = depth[None, :] + np.interp(u, traj_t, traj_z)
     x = u - 0.5 * float(traj_t[0] + traj_t[-1])
     rate_sigma = z_rate_sigma_m_per_s or 0.0
@@ -775,6 +778,9 @@ class Solution:
     flat_residuals_m, flat_prior_cost: the same samples fitted by a flat
     profile, no trajectory at all (`flat_profile_fit`): the null model the
     fit must beat; None when not computed.
+    used_mask: which of the dive's samples the fit used (its residuals are
+        theirs, in order), so that two fits of one dive are compared on the
+        samples both use; None when not known.
     """
 
     dive: int
@@ -783,6 +789,40 @@ class Solution:
     z_range_m: float
     flat_residuals_m: FloatArray | None = field(default=None, repr=False)
     flat_prior_cost: float = 0.0
+    used_mask: npt.NDArray[np.bool_] | None = field(default=None, repr=False)
+
+
+def _shared(a: Solution, b: Solution) -> npt.NDArray[np.bool_] | None:
+    """The samples two fits of one dive both use, when that is most (80 %) of each's."""
+    if a.dive != b.dive or a.used_mask is None or b.used_mask is None:
+        return None
+    common = a.used_mask & b.used_mask
+    n = int(common.sum())
+    if n < 3 or n < 0.8 * max(int(a.used_mask.sum()), int(b.used_mask.sum())):
+        return None
+    return common
+
+
+def cost_gap(a: Solution, b: Solution, sigma_m: float, k: float = 1.345) -> float:
+    """How much worse b fits than a (nats: Huber costs at `sigma_m` plus prior costs).
+
+    Two fits of one dive that share most of their samples (`_shared`: offsets
+    a few sample intervals apart) are compared on the samples both use: a
+    sample inside one overlap only (a spike at the trajectory's end, say)
+    would otherwise decide between them. Other pairs are compared by mean
+    cost over a's sample count.
+    """
+    priors = b.sync.prior_cost - a.sync.prior_cost
+    common = _shared(a, b)
+    if common is not None and a.used_mask is not None and b.used_mask is not None:
+        ra = a.sync.residuals_m[common[a.used_mask]]
+        rb = b.sync.residuals_m[common[b.used_mask]]
+        return (
+            ra.size * (mean_huber_cost(rb, sigma_m, k) - mean_huber_cost(ra, sigma_m, k)) + priors
+        )
+    mean_a = mean_huber_cost(a.sync.residuals_m, sigma_m, k)
+    mean_b = mean_huber_cost(b.sync.residuals_m, sigma_m, k)
+    return a.sync.used * (mean_b - mean_a) + priors
 
 
 def flat_profile_fit(
@@ -901,6 +941,13 @@ def assess_offset(
 
     ranked = sorted(solutions, key=ranking_cost)
     best = ranked[0]
+    # A fit that beats the first on the samples both use takes its place.
+    for _ in range(len(ranked)):
+        better = [s for s in ranked if cost_gap(best, s, lim.noise_sigma_m, k) < 0.0]
+        if not better:
+            break
+        best = min(better, key=lambda s: cost_gap(best, s, lim.noise_sigma_m, k))
+    ranked = [best, *[s for s in ranked if s is not best]]
     sync = best.sync
     sigma_t = sync.time_offset_sigma_s
     cost_sigma = max(lim.noise_sigma_m, sync.robust_scale_m)
@@ -920,14 +967,13 @@ def assess_offset(
             distinct.append(s)
     runner: Solution | None = None
     runner_cost = math.inf
-    runner_total = math.inf
+    evidence = math.inf
     for s in distinct:
-        cost = mean_huber_cost(s.sync.residuals_m, cost_sigma, k)
-        total = sync.used * cost + s.sync.prior_cost
-        if total < runner_total:
-            runner, runner_cost, runner_total = s, cost, total
+        gap = cost_gap(best, s, cost_sigma, k)
+        if gap < evidence:
+            runner, evidence = s, gap
+            runner_cost = mean_huber_cost(s.sync.residuals_m, cost_sigma, k)
     best_total = sync.used * best_cost + sync.prior_cost
-    evidence = runner_total - best_total if runner is not None else math.inf
     flat_evidence = math.inf
     if best.flat_residuals_m is not None:
         flat_cost = mean_huber_cost(best.flat_residuals_m, cost_sigma, k)
@@ -1022,6 +1068,73 @@ def z_rate_prior_sigma_m_per_s(
     return z_walk_sigma_m_per_sqrt_s / math.sqrt(duration_s)
 
 
+@dataclass(frozen=True)
+class _FitContext:
+    """One dive against the trajectory, with the search's settings: fits and profiles."""
+
+    index: int
+    traj_t: FloatArray
+    traj_z: FloatArray
+    dive_t: FloatArray
+    depth: FloatArray
+    max_gap_s: float
+    noise_sigma_m: float
+    z_rate_sigma_m_per_s: float | None
+    fit: dict[str, float | bool]
+    prior: ClockPrior | None
+
+    def profile(
+        self, centre_s: float, half_width_s: float, drift_ppm: float
+    ) -> tuple[FloatArray, FloatArray]:
+        return offset_profile(
+            self.traj_t,
+            self.traj_z,
+            self.dive_t,
+            self.depth,
+            centre_offset_s=centre_s,
+            half_width_s=half_width_s,
+            drift_ppm=drift_ppm,
+            noise_sigma_m=self.noise_sigma_m,
+            z_rate_sigma_m_per_s=self.z_rate_sigma_m_per_s,
+            max_gap_s=self.max_gap_s,
+        )
+
+    def solution(self, start_s: float, drift_ppm: float) -> Solution | None:
+        """The fit from `start_s` with what the assessment needs; None when it fails
+        or walks out of the prior's windows."""
+        try:
+            sync = fit_depth_sync(
+                self.traj_t,
+                self.traj_z,
+                self.dive_t,
+                self.depth,
+                initial_offset_s=start_s,
+                initial_drift_ppm=drift_ppm,
+                max_gap_s=self.max_gap_s,
+                z_rate_sigma_m_per_s=self.z_rate_sigma_m_per_s,
+                **self.fit,  # type: ignore[arg-type]
+            )
+        except SyncError:
+            return None
+        if self.prior is not None and not bool(self.prior.contains(sync.time_offset_s)):
+            return None
+        depth_range, z_range = depth_variation_m(
+            self.traj_t, self.traj_z, self.dive_t, self.depth, sync, max_gap_s=self.max_gap_s
+        )
+        u = sync.camera_time_s(self.dive_t)
+        finite = np.isfinite(self.depth) & np.isfinite(self.dive_t)
+        used = np.zeros(self.dive_t.size, dtype=bool)
+        used[finite] = valid_mask(self.traj_t, u[finite], max_gap_s=self.max_gap_s)
+        flat_residuals, flat_prior = flat_profile_fit(
+            u[used],
+            self.depth[used],
+            noise_sigma_m=self.noise_sigma_m,
+            z_rate_sigma_m_per_s=self.z_rate_sigma_m_per_s,
+        )
+        mask = used if int(used.sum()) == sync.residuals_m.size else None
+        return Solution(self.index, sync, depth_range, z_range, flat_residuals, flat_prior, mask)
+
+
 def _fitted_solutions(
     traj_t: FloatArray,
     traj_z: FloatArray,
@@ -1059,50 +1172,29 @@ def _fitted_solutions(
             continue
         coarse_by_dive[index] = coarse.candidates
         separation_s = max(sample_interval_s(dive_t), 2.0 * search["step_s"])
+        context = _FitContext(
+            index=index,
+            traj_t=traj_t,
+            traj_z=traj_z,
+            dive_t=dive_t,
+            depth=depth,
+            max_gap_s=search["max_gap_s"],
+            noise_sigma_m=noise_sigma_m,
+            z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
+            fit=fit,
+            prior=prior,
+        )
         for candidate in coarse.candidates:
             # The lowest minimum within the candidate's reach (up to the next local
             # minimum the coarse search could have kept), then the fit from it.
-            offsets, cost = offset_profile(
-                traj_t,
-                traj_z,
-                dive_t,
-                depth,
-                centre_offset_s=candidate.offset_s,
-                half_width_s=separation_s,
-                noise_sigma_m=noise_sigma_m,
-                z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
-                max_gap_s=search["max_gap_s"],
+            offsets, cost = context.profile(candidate.offset_s, separation_s, 0.0)
+            finite = bool(np.isfinite(cost).any())
+            found = context.solution(
+                float(offsets[np.argmin(cost)]) if finite else candidate.offset_s, 0.0
             )
-            start_s = float(offsets[np.argmin(cost)]) if np.isfinite(cost).any() else None
-            try:
-                sync = fit_depth_sync(
-                    traj_t,
-                    traj_z,
-                    dive_t,
-                    depth,
-                    initial_offset_s=candidate.offset_s if start_s is None else start_s,
-                    max_gap_s=search["max_gap_s"],
-                    z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
-                    **fit,  # type: ignore[arg-type]
-                )
-            except SyncError:
+            if found is None:
                 continue
-            if prior is not None and not bool(prior.contains(sync.time_offset_s)):
-                continue  # the fit walked out of the prior's window
-            depth_range, z_range = depth_variation_m(
-                traj_t, traj_z, dive_t, depth, sync, max_gap_s=search["max_gap_s"]
-            )
-            u = sync.camera_time_s(dive_t)
-            used = valid_mask(traj_t, u, max_gap_s=search["max_gap_s"]) & np.isfinite(depth)
-            flat_residuals, flat_prior = flat_profile_fit(
-                u[used],
-                depth[used],
-                noise_sigma_m=noise_sigma_m,
-                z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
-            )
-            solutions.append(
-                Solution(index, sync, depth_range, z_range, flat_residuals, flat_prior)
-            )
+            solutions.append(found)
     return solutions, coarse_by_dive, failures
 
 
@@ -1208,16 +1300,7 @@ def solve_clock_offset(
         return answer
     chosen, inside_ambiguity = assess_offset(inside, lim)
     # The data outside the prior may still rule its answer out.
-    sigma = ambiguity.cost_sigma_m
-    gap = (
-        chosen.sync.used
-        * (
-            mean_huber_cost(chosen.sync.residuals_m, sigma, lim.huber_k)
-            - mean_huber_cost(best.sync.residuals_m, sigma, lim.huber_k)
-        )
-        + chosen.sync.prior_cost
-        - best.sync.prior_cost
-    )
+    gap = cost_gap(best, chosen, ambiguity.cost_sigma_m, lim.huber_k)
     if gap >= lim.min_evidence:
         inside_ambiguity = dataclasses.replace(
             inside_ambiguity,
