@@ -340,13 +340,14 @@ def _import_gopro(video: Path, work: Path) -> Path:
     return session
 
 
-def colmap_keyframe_poses(slam_dir: Path, work: Path) -> tuple[dict[int, FloatArray], int]:
+def colmap_keyframe_poses(slam_dir: Path, work: Path) -> tuple[list[dict[int, FloatArray]], int]:
     """An independent COLMAP reconstruction of a SLAM result's keyframe images.
 
     Intrinsics fixed to the SLAM's calibration (calib/camchain.yaml), SIFT on the
     full images, sequential matching (20 neighbours, quadratic overlap), COLMAP's
-    incremental mapper; the largest model is kept. Returns (stamp_ns -> `T_W_C` of
-    every registered keyframe, keyframes given).
+    incremental mapper. Returns (one stamp_ns -> `T_W_C` dict per model, largest
+    first; keyframes given). A sequence COLMAP cannot chain (dim, bare stretches)
+    comes back as several models, each in its own frame and scale.
     """
     import shutil
 
@@ -404,10 +405,11 @@ def colmap_keyframe_poses(slam_dir: Path, work: Path) -> tuple[dict[int, FloatAr
     pipeline.mapper.init_min_tri_angle = 4.0
     pipeline.mapper.init_max_forward_motion = 1.0
     models = pycolmap.incremental_mapping(database, image_dir, work / "sparse", options=pipeline)
-    if not models:
-        return {}, n
-    best = max(models.values(), key=lambda r: r.num_reg_images())
-    poses = {int(name.removesuffix(".png")): T for name, T in camera_poses(best).items()}
+    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    poses = [
+        {int(name.removesuffix(".png")): T for name, T in camera_poses(model).items()}
+        for model in ranked
+    ]
     return poses, n
 
 
@@ -487,8 +489,10 @@ def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict
     )
     row["max_keyframe_speed_m_s"] = float(speeds.max()) if len(speeds) else float("nan")
     try:
-        colmap, given = colmap_keyframe_poses(out, work / f"colmap_{recording.name}")
+        models, given = colmap_keyframe_poses(out, work / f"colmap_{recording.name}")
+        colmap = models[0] if models else {}
         row["colmap_registered"] = f"{len(colmap)}/{given}"
+        row["colmap_models"] = [len(m) for m in models]
         if len(colmap) >= 3:
             stamps = np.array(sorted(colmap), dtype=np.int64)
             theirs = Trajectory(stamps, np.array([colmap[s] for s in stamps]))
@@ -540,7 +544,8 @@ def _format_real(row: dict[str, object]) -> str:
         f"  tracking failures {row.get('tracking_failures')}  RTF {number('rtf', '.2f')}"
         f" (per CPU s {number('rtf_cpu', '.2f')})  max kf speed "
         f"{number('max_keyframe_speed_m_s', '.2f')} m/s\n{'':<16} "
-        f"COLMAP registered {row.get('colmap_registered', '-')}, Sim(3) ATE "
+        f"COLMAP largest model {row.get('colmap_registered', '-')} keyframes "
+        f"(models {row.get('colmap_models', '-')}), its Sim(3) ATE "
         f"{number('colmap_ate_pct', '.2f')} % of the path ({number('colmap_ate_m', '.3f')}; "
         f"median error {number('colmap_median_pct', '.2f')} %)"
     )
