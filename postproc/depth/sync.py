@@ -15,31 +15,46 @@ The model (one dive computer sample k, at dive-clock reading v_k):
     depth_k = depth_offset_m - depth_scale * z(u_k) + e_k    (e_k: noise, quantisation)
 
 so `time_offset_s` is dive-computer time minus camera time at the reference
-and `depth_offset_m` is the depth of the trajectory's origin. The sample is
+and `depth_offset_m` is the depth of the trajectory's origin (with a z rate,
+the depth relation over the whole trajectory: see `DepthSync`). The sample is
 taken as the trajectory depth at its own (continuous) time, so the estimate is
 not limited to the 10 s sampling nor to any resampling grid: z is interpolated
 at u_k and the offset moves it continuously.
 
-Estimation, in two steps:
+Estimation, in three steps:
 
 1. `coarse_offset_search`: the sum of squared depth residuals (depth offset
-   free, scale 1) for every whole-`step_s` clock offset, all at once with FFT
+   free, scale 1, and a penalised steady z drift of the trajectory removed)
+   for every whole-`step_s` clock offset, all at once with FFT
    cross-correlations of the masked signals (so hours of search cost as much
    as seconds). The dive samples keep their own times (rounded to `step_s`);
-   nothing is interpolated between the 10 s samples.
-2. `fit_depth_sync`: robust Gauss-Newton (iteratively reweighted, Huber
-   weights on a MAD scale) on offset, drift, depth offset and optionally
-   scale, from the best coarse candidates. Uncertainties come from the
-   Gauss-Newton covariance scaled by the residual variance; they assume
-   independent residuals, so slow VIO drift in z makes them optimistic.
+   nothing is interpolated between the 10 s samples. Lone depth spikes are
+   replaced first and z is low-passed to the samples' Nyquist period, and the
+   candidates are local minima of the score.
+2. `offset_profile`: around each candidate, the robust misfit on a 0.25 s
+   grid (one set of samples for every offset) picks the start of the fit.
+3. `fit_depth_sync`: robust Gauss-Newton (iteratively reweighted, Huber
+   weights on a MAD scale) on offset, drift, depth offset, the z rate and
+   optionally scale. Uncertainties come from the Gauss-Newton covariance
+   scaled by the residual variance; they assume independent residuals, so
+   a VIO wobble in z makes them optimistic.
 
 Then the answer is checked (`assess_offset`, `solve_clock_offset`): the fits of
-every candidate (of every dive) are compared at one noise scale, and the offset
-counts as known only when each clearly different one fits worse by a margin
-(`evidence`) and the overlap has enough samples, depth excursion and
-curvature. When it does not, a `ClockPrior` (the two wall clocks agree within
-minutes, apart from time-zone steps) may restrict the search; otherwise the
-caller is told that the offset is ambiguous.
+every candidate (of every dive) are compared at one noise scale (two fits of a
+dive on the samples both use, `cost_gap`), and the offset counts as known only
+when each clearly different one fits worse by a margin (`evidence`), the fit
+beats a flat profile by that margin too (`flat_profile_fit`), and the overlap
+has enough samples and curvature. When it does not, a `ClockPrior` (the two
+wall clocks agree within minutes, apart from time-zone steps) may restrict the
+search; otherwise the caller is told that the offset is ambiguous.
+
+Why the steps (issue 21, long flat dives): on 25 minutes within a metre of one
+depth, a VIO z drifting 0.4 % of the distance swum (1.8 m) dominated the plain
+misfit of every offset, so its curve was one broad valley and the five best
+grid points all lay on its slopes; the true minimum was never fitted. A 9 s
+finning bob sampled every 10 s looks like a 90 s depth change, so a fit could
+also settle one bob period away; and one spike entering or leaving the overlap
+outweighed a flat dive's whole signal.
 """
 
 from __future__ import annotations
@@ -728,8 +743,9 @@ def depth_variation_m(
 # dive of the day, a few hundred seconds or hours away. The fits of every
 # coarse candidate (of every dive) are compared at one common noise scale; the
 # answer counts as known only when each clearly different offset fits worse
-# by a margin, enough samples overlap, the depth varies there, and the
-# offset's own uncertainty is small.
+# by a margin, enough samples overlap, the trajectory explains the depths
+# better than a constant depth does (the depth varies there, whatever its span
+# in metres), and the offset's own uncertainty is small.
 
 DEPTH_RESOLUTION_M = 0.1
 EXPECTED_NOISE_M = math.hypot(QUANTISATION_SIGMA_M, 0.05)
@@ -739,8 +755,9 @@ EXPECTED_NOISE_M = math.hypot(QUANTISATION_SIGMA_M, 0.05)
 class AmbiguityLimits:
     """When a clock offset counts as known (the thresholds of `assess_offset`).
 
-    min_evidence: the best fit must beat every clearly different offset by this
-        much: samples x the difference of mean Huber costs (`mean_huber_cost`).
+    min_evidence: the best fit must beat every clearly different offset, and
+        a flat profile, by this much: samples x the difference of mean Huber
+        costs (`mean_huber_cost`, `cost_gap`) plus that of the priors' costs.
         For Gaussian residuals it is half the chi-square gap, a log-likelihood
         ratio: 10 means odds of about 2e4 to 1.
     min_samples: dive samples inside the trajectory at the solution (a fit has

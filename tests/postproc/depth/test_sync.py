@@ -16,6 +16,7 @@ from postproc.depth.sync import (
     SyncError,
     assess_offset,
     coarse_offset_search,
+    cost_gap,
     fit_depth_sync,
     mean_huber_cost,
     solve_clock_offset,
@@ -250,3 +251,36 @@ def test_solve_long_dive_is_unambiguous_and_ignores_the_prior():
     assert solution.prior_distance_s == pytest.approx(450.0, abs=1.0)
     with pytest.raises(SyncError, match="dive 0: no clock offset"):
         solve_clock_offset(traj_t, traj_z, dives[:1], max_offset_s=600.0)
+
+
+def test_fits_of_one_dive_are_compared_on_the_samples_both_use():
+    rng = np.random.default_rng(4)
+    n = 40
+    shared_good = rng.normal(0.0, 0.03, n - 1)
+    shared_worse = rng.normal(0.0, 0.09, n - 1)
+    # a: samples 0..39, the first a 3 m spike at the trajectory's start; b: samples 1..40.
+    a_mask = np.zeros(n + 1, dtype=bool)
+    a_mask[:n] = True
+    b_mask = np.zeros(n + 1, dtype=bool)
+    b_mask[1:] = True
+    a = Solution(0, _sync(100.0, np.concatenate([[3.0], shared_good])), 2.0, 2.0, None, 0.0, a_mask)
+    b = Solution(
+        0, _sync(110.0, np.concatenate([shared_worse, [0.01]])), 2.0, 2.0, None, 0.0, b_mask
+    )
+    sigma = 0.06
+    assert cost_gap(a, b, sigma) > 10.0  # b fits the samples both use clearly worse
+    # By mean cost over each fit's own samples the spike would make b look better.
+    unmasked_a = Solution(0, a.sync, 2.0, 2.0)
+    unmasked_b = Solution(0, b.sync, 2.0, 2.0)
+    assert cost_gap(unmasked_a, unmasked_b, sigma) < 0.0
+    best, ambiguity = assess_offset([b, a])
+    assert best is a and ambiguity.runner_up_offset_s == 110.0
+    assert ambiguity.evidence == pytest.approx(cost_gap(a, b, ambiguity.cost_sigma_m))
+    # Fits that share few samples (offsets far apart) are compared by mean cost.
+    far_mask = np.zeros(n + 1, dtype=bool)
+    far_mask[n - 3 :] = True
+    far = Solution(0, _sync(900.0, np.full(4, 0.01)), 2.0, 2.0, None, 0.0, far_mask)
+    mean_gap = a.sync.used * (
+        mean_huber_cost(far.sync.residuals_m, sigma) - mean_huber_cost(a.sync.residuals_m, sigma)
+    )
+    assert cost_gap(a, far, sigma) == pytest.approx(mean_gap)
