@@ -23,6 +23,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "postproc.commands.sfm",
     "postproc.commands.dense",
     "postproc.commands.run",
+    "postproc.commands.export",
 )
 
 
