@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -18,7 +17,7 @@ from field.divecomputer.simulator import (
     FaultOptions,
     LineFaults,
     SimulatedShearwater,
-    serve_pty,
+    serving_pty,
     synthetic_dives,
 )
 
@@ -29,28 +28,10 @@ DIVES = synthetic_dives(10, seed=1, duration_s=3600.0)
 def run_case(name: str, faults: FaultOptions, options: DownloadOptions) -> None:
     device = SimulatedShearwater("perdix-ai", DIVES)
     line = LineFaults(faults)
-    stop = threading.Event()
-    ready: list[str] = []
-    started = threading.Event()
-
-    def on_ready(path: str) -> None:
-        ready.append(path)
-        started.set()
-
-    thread = threading.Thread(
-        target=serve_pty,
-        args=(device,),
-        kwargs={"faults": line, "ready": on_ready, "stop": stop, "poll_s": 0.01},
-        daemon=True,
-    )
-    thread.start()
-    started.wait(5)
-    with tempfile.TemporaryDirectory() as folder:
+    with serving_pty(device, line) as port, tempfile.TemporaryDirectory() as folder:
         begin = time.perf_counter()
-        result = download_dives(ready[0], Path(folder), options)
+        result = download_dives(port, Path(folder), options)
         elapsed = time.perf_counter() - begin
-    stop.set()
-    thread.join(5)
     print(
         f"{name:<28} {elapsed:6.2f} s  {len(result.written)} dives  {line.packets:5d} replies  "
         f"dropped {line.dropped:5d}  corrupted {line.corrupted:5d}"

@@ -34,7 +34,6 @@ import struct
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from contextlib import contextmanager, suppress
@@ -268,7 +267,7 @@ def download_cut(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) 
         FaultOptions,
         LineFaults,
         SimulatedShearwater,
-        serve_pty,
+        serving_pty,
         synthetic_dives,
     )
     from shared.errors import DeviceError
@@ -281,31 +280,9 @@ def download_cut(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) 
     def unit() -> Any:
         return SimulatedShearwater("perdix-ai", synthetic_dives(6, seed=31, duration_s=300))
 
-    @contextmanager
-    def serving(device: Any, faults: Any = None) -> Any:
-        stop = threading.Event()
-        ready: list[str] = []
-        started = threading.Event()
-
-        def on_ready(path: str) -> None:
-            ready.append(path)
-            started.set()
-
-        thread = threading.Thread(
-            target=serve_pty, args=(device,), daemon=True,
-            kwargs={"faults": faults, "ready": on_ready, "stop": stop, "poll_s": 0.01},
-        )  # fmt: skip
-        thread.start()
-        started.wait(5)
-        try:
-            yield ready[0]
-        finally:
-            stop.set()
-            thread.join(5)
-
     if not hasattr(download_cut, "total"):
         line = LineFaults(FaultOptions())
-        with serving(unit(), line) as port:
+        with serving_pty(unit(), line) as port:
             download_dives(port, work / "dc-full", quick)
         download_cut.total = line.bytes_sent  # type: ignore[attr-defined]
         truth = work / "dc-truth"
@@ -317,11 +294,11 @@ def download_cut(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) 
     folder = work / f"dc{row.trials}"
     cut = rng.randrange(1, total)
     cable = LineFaults(FaultOptions(disconnect_after_bytes=cut))
-    with serving(unit(), cable) as port, suppress(DeviceError):
+    with serving_pty(unit(), cable) as port, suppress(DeviceError):
         download_dives(port, folder, quick)
     kept = len(read_dive_index(folder)) if (folder / "dives.json").exists() else 0
     t0 = time.monotonic()
-    with serving(unit()) as port:
+    with serving_pty(unit()) as port:
         download_dives(port, folder, quick)
     row.recover_s.append(time.monotonic() - t0)
     index = read_dive_index(folder)

@@ -21,7 +21,8 @@ import select
 import threading
 import time
 import tty
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -489,3 +490,41 @@ def serve_pty(
         if connected:
             os.close(master)
             os.close(slave)
+
+
+@contextmanager
+def serving_pty(
+    device: SimulatedShearwater,
+    faults: FaultOptions | LineFaults | None = None,
+    *,
+    poll_s: float = 0.01,
+    start_timeout_s: float = 5.0,
+) -> Iterator[str]:
+    """Serve `device` on a pseudo-terminal from a background thread; yields its path.
+
+    The thread stops when the block ends. For tests and benchmarks in one process (the
+    `dc simulate` command serves from a process of its own).
+    """
+    stop = threading.Event()
+    ready: list[str] = []
+    started = threading.Event()
+
+    def on_ready(path: str) -> None:
+        ready.append(path)
+        started.set()
+
+    thread = threading.Thread(
+        target=serve_pty,
+        args=(device,),
+        kwargs={"faults": faults, "ready": on_ready, "stop": stop, "poll_s": poll_s},
+        daemon=True,
+    )
+    thread.start()
+    if not started.wait(start_timeout_s):
+        stop.set()
+        raise RuntimeError("simulated dive computer: the pty did not start")
+    try:
+        yield ready[0]
+    finally:
+        stop.set()
+        thread.join(start_timeout_s)

@@ -6,7 +6,6 @@ import contextlib
 import signal
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,7 +17,7 @@ from field.divecomputer.simulator import (
     FaultOptions,
     LineFaults,
     SimulatedShearwater,
-    serve_pty,
+    serving_pty,
     synthetic_dives,
 )
 from shared.errors import DeviceError
@@ -50,29 +49,10 @@ def simulator_process(*args: str) -> Iterator[str]:
 
 @contextlib.contextmanager
 def simulator_thread(
-    device: SimulatedShearwater, faults: FaultOptions | None = None
+    device: SimulatedShearwater, faults: FaultOptions | LineFaults | None = None
 ) -> Iterator[str]:
-    stop = threading.Event()
-    ready: list[str] = []
-    started = threading.Event()
-
-    def on_ready(path: str) -> None:
-        ready.append(path)
-        started.set()
-
-    thread = threading.Thread(
-        target=serve_pty,
-        args=(device,),
-        kwargs={"faults": faults, "ready": on_ready, "stop": stop, "poll_s": 0.01},
-        daemon=True,
-    )
-    thread.start()
-    assert started.wait(5)
-    try:
-        yield ready[0]
-    finally:
-        stop.set()
-        thread.join(5)
+    with serving_pty(device, faults) as port:
+        yield port
 
 
 def assert_same_dives(truth: Path, downloaded: Path) -> None:
