@@ -41,11 +41,12 @@ keeps the IMU with the guessed calibration:
   correlated by at least `min_correlation`, and the best shift inside the
   search range (at its edge the true shift may lie beyond).
 - "not rigid": at least `strong_min_pairs` turning pairs, the images measure
-  their own rotation well (the rotation they report while the gyro is still,
-  `visual_noise_px`, is under `max_noise_fraction` of the gyro's typical
-  turn), the gain is significantly positive (more than `min_gain_sigmas`
-  standard errors: the images do follow the body), and the rigid model fails
-  beyond its uncertainty (the gain `min_gain_sigmas` errors below the lowest
+  their own rotation well (a bound on their rotation noise, `visual_noise_px`:
+  what they report while the gyro is still, or the jitter of consecutive
+  rotations, is under `max_noise_fraction` of the gyro's typical turn), the
+  gain is significantly positive (more than `min_gain_sigmas` standard
+  errors: the images do follow the body), and the rigid model fails beyond
+  its uncertainty (the gain `min_gain_sigmas` errors below the lowest
   accepted focal scale, or above the highest, or more than `max_unexplained`
   of the rotation unexplained).
 - "unknown" otherwise, with `reason` saying why: too little rotation, or a
@@ -63,6 +64,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from postproc.slam.types import FloatArray, ImuSamples, IntArray
 from shared.geometry import so3_log
@@ -78,8 +80,8 @@ class GyroCheckOptions:
     shift_step_s: resolution of the offset search.
     min_rotation_px: pairs whose gyro rotation moves the image centre by at least this
         many pixels (at the guessed focal) take part in the gain and rigidity fits.
-    still_rotation_px: pairs whose gyro rotation stays below this many pixels measure
-        the images' rotation noise (`visual_noise_px`).
+    still_rotation_px: pairs whose gyro rotation stays below this many pixels bound
+        the images' rotation noise (`visual_noise_px`, with the second differences).
     min_pairs: fewer turning pairs: too little rotation to say anything ("unknown").
     strong_min_pairs: turning pairs needed before the video may be declared "not rigid".
     focal_scale_range: accepted focal corrections (outside: not a rigid camera-IMU pair).
@@ -89,7 +91,7 @@ class GyroCheckOptions:
     min_correlation: a "rigid" verdict needs the angular speeds correlated this well.
     min_gain_sigmas: standard errors by which a gain must clear zero (images follow the
         body) and miss the accepted range before "not rigid" is declared.
-    max_noise_fraction: "not rigid" needs the images' still-gyro rotation noise below
+    max_noise_fraction: "not rigid" needs the images' rotation noise bound below
         this fraction of the gyro's median turn on the turning pairs.
     """
 
@@ -127,7 +129,7 @@ class GyroCheck:
         turning pairs (a negative one points at a sign error in the axis convention).
     gyro_rotation_px / visual_rotation_px: median turn of a turning pair, gyro / images,
         in pixels at the guessed focal.
-    visual_noise_px: median image rotation over the pairs the gyro calls still (NaN: none).
+    visual_noise_px: upper bound on the image rotation noise (`_visual_noise_px`; NaN: none).
     pairs / turning_pairs / still_pairs: pairs compared / turning / still.
     """
 
@@ -263,6 +265,32 @@ def _best_shift(
     return best_shift, (best_corr if np.isfinite(best_corr) else float("nan"))
 
 
+def _visual_noise_px(
+    visual: FloatArray,
+    starts: IntArray,
+    ends: IntArray,
+    still: npt.NDArray[np.bool_],
+    focal_px: float,
+) -> float:
+    """An upper bound on the images' rotation noise (pixels), NaN when none can be formed.
+
+    Two bounds, the smaller wins: the median image rotation while the gyro is still
+    (any real turn only adds to it), and the median second difference of the image
+    rotation over consecutive pairs, divided by sqrt(1.5) (white noise of sigma gives
+    sigma sqrt(1.5) there; a smooth turn at 30 frames a second adds little), which
+    needs no still moment: a camera that never stops turning has none.
+    """
+    bounds: list[float] = []
+    if still.sum() >= 3:
+        bounds.append(float(np.median(np.linalg.norm(visual[still], axis=1))) * focal_px)
+    chained = np.flatnonzero(ends[:-2] == starts[1:-1]) if len(starts) >= 3 else np.zeros(0, int)
+    chained = chained[ends[chained + 1] == starts[chained + 2]]
+    if len(chained) >= 5:
+        second = visual[chained + 1] - 0.5 * (visual[chained] + visual[chained + 2])
+        bounds.append(float(np.median(np.linalg.norm(second, axis=1))) / math.sqrt(1.5) * focal_px)
+    return min(bounds) if bounds else float("nan")
+
+
 def _correlation(a: FloatArray, b: FloatArray) -> float:
     if len(a) < 3 or np.std(a) == 0 or np.std(b) == 0:
         return float("nan")
@@ -308,9 +336,7 @@ def check_gyro_against_images(
     turning = ok & (gyro_px >= options.min_rotation_px)
     still = ok & (gyro_px < options.still_rotation_px)
     count = int(turning.sum())
-    noise_px = (
-        float(np.median(np.linalg.norm(visual[still], axis=1)) * focal_px) if still.any() else nan
-    )
+    noise_px = _visual_noise_px(visual, starts, ends, still, focal_px)
 
     def outcome(verdict: str, reason: str, **numbers: float) -> GyroCheck:
         values = {

@@ -8,7 +8,7 @@
 - max-heromode.mp4 (GoPro MAX in HERO mode): the file says it is stabilised
   (Global Settings EISE "Y", EISA "HS HLevel": HyperSmooth with horizon
   levelling). The images follow the body but turn 0.38 +- 0.04 as much,
-  50 turning pairs, 115 % unexplained, image noise 0.4 px against 5.3 px
+  50 turning pairs, 115 % unexplained, image noise below 0.15 px against 5.3 px
   turns: "not rigid". The camera's own record of the stabilisation agrees:
   the orientation it rendered each frame at (CORI camera orientation times
   IORI image-relative-to-body orientation) explains the tracked image

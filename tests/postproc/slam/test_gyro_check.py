@@ -248,3 +248,20 @@ def test_an_imu_that_starts_late_and_ends_early_uses_the_pairs_it_covers() -> No
     assert check.verdict == "rigid", check.reason
     assert check.focal_scale == pytest.approx(1.2, rel=0.02)
     assert check.time_shift_s == pytest.approx(-0.02, abs=0.004)
+
+
+def test_a_stabilised_video_that_never_stops_turning_is_still_judged() -> None:
+    """No still moment to measure the image noise on: the jitter of consecutive image
+    rotations bounds it instead, so strong evidence still gives "not rigid"."""
+    circling = DiverMotion(
+        yaw=Sinusoids(amplitudes=(0.4,), frequencies_rad_s=(2.1,), phases_rad=(0.0,)),
+        pitch=Sinusoids(amplitudes=(0.4,), frequencies_rad_s=(2.1,), phases_rad=(np.pi / 2,)),
+    )
+    starts, ends = _frame_pairs()
+    visual = _visual(
+        circling, starts - 250_000_000, ends - 250_000_000, shift_s=0.0, gain=0.33, noise_px=0.3
+    )
+    check = _check(visual, starts, ends, _imu(circling))
+    assert check.still_pairs == 0
+    assert check.visual_noise_px < 0.5 * check.gyro_rotation_px
+    assert check.verdict == "not rigid", check.reason
