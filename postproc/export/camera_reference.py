@@ -5,6 +5,8 @@ Written into the export folder::
 
     cameras.csv       label, x, y, z (m), omega, phi, kappa (deg), and one-sigma accuracies
     calibration.xml   the undistorted pinhole camera, as Metashape's calibration file
+                      (with several cameras: calibration_camera<id>.xml for each, the
+                      CSV's camera_id column says which images it holds)
     images/<label>    the undistorted images (same size and focal length as recorded)
 
 Angles (pure math here): omega, phi, kappa as photogrammetry (and Metashape's reference
@@ -41,6 +43,7 @@ IMAGE_DIR = "images"
 COLUMNS = (
     "label", "x_m", "y_m", "z_m", "omega_deg", "phi_deg", "kappa_deg",
     "x_sigma_m", "y_sigma_m", "z_sigma_m", "angle_sigma_deg", "accuracy_source",
+    "camera_id",
 )  # fmt: skip
 
 
@@ -75,6 +78,7 @@ def reference_rows(cameras: list[ExportCamera], options: ReferenceOptions) -> li
         pose = camera.world_from_cam
         omega, phi, kappa = opk_deg(pose)
         accuracy = pose_accuracy(camera)
+        sigmas: tuple[float, ...]
         if accuracy is None:
             sigmas = (options.default_m,) * 3
             angle = options.default_deg
@@ -93,6 +97,7 @@ def reference_rows(cameras: list[ExportCamera], options: ReferenceOptions) -> li
                 "x_sigma_m": f"{sigmas[0]:.4f}", "y_sigma_m": f"{sigmas[1]:.4f}",
                 "z_sigma_m": f"{sigmas[2]:.4f}", "angle_sigma_deg": f"{angle:.4f}",
                 "accuracy_source": source,
+                "camera_id": str(camera.camera_id),
             }
         )  # fmt: skip
     return rows
@@ -136,7 +141,7 @@ def undistort_maps(camera: ExportCamera) -> tuple[npt.NDArray[np.float32], ...]:
         )
     else:
         maps = cv2.initUndistortRectifyMap(K, camera.distortion(), None, K, size, cv2.CV_32FC1)
-    return tuple(maps)
+    return (np.asarray(maps[0], np.float32), np.asarray(maps[1], np.float32))
 
 
 def write_camera_reference(
@@ -179,4 +184,8 @@ def write_camera_reference(
                 raise InputError(f"{source}: cannot write its undistorted copy")
         (tmp / CSV_NAME).write_text(reference_csv(reference_rows(cameras, options)))
         (tmp / CALIBRATION_NAME).write_text(calibration_xml(first))
+        distinct = {c.camera_id: c for c in cameras}
+        if len(distinct) > 1:
+            for camera_id, camera in sorted(distinct.items()):
+                (tmp / f"calibration_camera{camera_id}.xml").write_text(calibration_xml(camera))
     return out_dir / CSV_NAME

@@ -100,7 +100,8 @@ def project(camera: ExportCamera, points_m: FloatArray, cam_from_world: FloatArr
         radial = 1 + k1 * r2 + k2 * r2 * r2
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.column_stack((p["fx"] * xd + p["cx"], p["fy"] * yd + p["cy"]))
+    pixels: FloatArray = np.column_stack((p["fx"] * xd + p["cx"], p["fy"] * yd + p["cy"]))
+    return pixels
 
 
 def _rotation(omega: FloatArray) -> FloatArray:
@@ -110,7 +111,8 @@ def _rotation(omega: FloatArray) -> FloatArray:
         return np.eye(3)
     k = omega / angle
     Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+    R: FloatArray = np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * (Kx @ Kx)
+    return R
 
 
 @dataclass(frozen=True)

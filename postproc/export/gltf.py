@@ -49,12 +49,16 @@ def write_mesh_gltf(
         process=False,
     )
     if path.suffix == ".glb":
-        data = trimesh.exchange.gltf.export_glb(mesh, include_normals=True)
+        data = trimesh.exchange.gltf.export_glb(  # type: ignore[no-untyped-call]
+            mesh, include_normals=True
+        )
         with atomic_path(path, overwrite=overwrite) as tmp:
             tmp.write_bytes(data)
         return path
     buffer_name = path.stem + ".bin"
-    files = trimesh.exchange.gltf.export_gltf(mesh, include_normals=True, merge_buffers=True)
+    files = trimesh.exchange.gltf.export_gltf(  # type: ignore[no-untyped-call]
+        mesh, include_normals=True, merge_buffers=True
+    )
     document = json.loads(files.pop("model.gltf"))
     if len(files) != 1 or len(document["buffers"]) != 1:
         raise RuntimeError(f"trimesh wrote {len(files)} buffers (expected one)")

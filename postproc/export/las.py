@@ -34,7 +34,7 @@ def write_points_las(
     """Write points (N, 3) m with optional RGB (N, 3) uint8 to `.las` or `.laz` (by the
     suffix of `path`). Raises InputError when there are no points or the extent does
     not fit int32 counts of `scale_m`."""
-    import laspy
+    import laspy  # type: ignore[import-untyped]
 
     path = Path(path)
     if path.suffix not in (".las", ".laz"):

@@ -240,10 +240,12 @@ def preview_png(
     its length, an arrow to +y (north when georeferenced) and a caption."""
     import cv2
 
-    image = np.where(valid[..., None], rgb, 255).astype(np.uint8)
+    image: npt.NDArray[np.uint8] = np.where(valid[..., None], rgb, 255).astype(np.uint8)
     scale = min(1.0, max_side_px / max(image.shape[:2]))
     if scale < 1.0:
-        image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        image = np.asarray(
+            cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA), np.uint8
+        )
     px_m = resolution_m / scale  # metres per preview pixel
     height, width = image.shape[:2]
     pad = 60
@@ -273,7 +275,7 @@ def colourise_elevation(elevation: npt.NDArray[np.float32]) -> npt.NDArray[np.ui
     valid = np.isfinite(elevation)
     if not valid.any():
         return np.zeros((*elevation.shape, 3), np.uint8)
-    lo, hi = np.nanmin(elevation), np.nanmax(elevation)
+    lo, hi = float(np.nanmin(elevation)), float(np.nanmax(elevation))
     level = np.zeros(elevation.shape, np.uint8)
     level[valid] = np.clip((elevation[valid] - lo) / max(hi - lo, 1e-9) * 255, 0, 255)
-    return cv2.applyColorMap(level, cv2.COLORMAP_VIRIDIS)[..., ::-1].copy()
+    return np.asarray(cv2.applyColorMap(level, cv2.COLORMAP_VIRIDIS)[..., ::-1], np.uint8)
