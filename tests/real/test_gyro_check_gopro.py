@@ -44,6 +44,7 @@ from postproc.slam.gyro_check import (
     visual_rotation,
 )
 from postproc.slam.inputs import open_input
+from shared.errors import InputError
 from shared.geometry import so3_log
 
 REPO = Path(__file__).resolve().parents[2]
@@ -253,3 +254,8 @@ def test_the_axis_keys_each_generation_writes(shared_data: Path) -> None:
     # Into the camera-aligned body frame, the MAX's file order is already x right,
     # y down, z forward.
     np.testing.assert_array_equal(cameras.body_from_file_axes("XzY"), np.eye(3))
+
+
+def test_orientation_matrix_refuses_an_order_that_is_no_permutation() -> None:
+    with pytest.raises(InputError, match="permutation of XYZ"):
+        cameras.orientation_matrix("XzY", "ZZY", source="clip.mp4: ACCL ORIO")
