@@ -539,11 +539,14 @@ def _format_real(row: dict[str, object]) -> str:
         if isinstance(frames, int) and isinstance(images, int) and images
         else "-"
     )
+    mode = str(row.get("mode"))
+    metric = not (mode.startswith("visual-only") or "not metres" in mode)
     text = (
         f"{row['recording']:<16} frames {frames}/{images} ({coverage})  kf {row.get('keyframes')}"
         f"  tracking failures {row.get('tracking_failures')}  RTF {number('rtf', '.2f')}"
         f" (per CPU s {number('rtf_cpu', '.2f')})  max kf speed "
-        f"{number('max_keyframe_speed_m_s', '.2f')} m/s\n{'':<16} "
+        f"{number('max_keyframe_speed_m_s', '.2f')} {'m/s' if metric else 'units/s (not metres)'}"
+        f"\n{'':<16} "
         f"COLMAP largest model {row.get('colmap_registered', '-')} keyframes "
         f"(models {row.get('colmap_models', '-')}), its Sim(3) ATE "
         f"{number('colmap_ate_pct', '.2f')} % of the path ({number('colmap_ate_m', '.3f')}; "
