@@ -112,7 +112,10 @@ def _data_lines(path: Path) -> list[str]:
 
 def _backend(noise: ImuNoise) -> VisualInertialBackend:
     return VisualInertialBackend(
-        BackendOptions(), focal_px=500.0, imu_from_cam=np.eye(4), imu_noise=noise
+        BackendOptions(imu_noise_inflation=1.0),
+        focal_px=500.0,
+        imu_from_cam=np.eye(4),
+        imu_noise=noise,
     )
 
 
