@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import fcntl
 import json
 import os
 import shutil
@@ -75,8 +76,10 @@ class HeadlessChromium:
         self._from_child, from_child_w = os.pipe()
 
         def fds() -> None:  # in the child: the protocol's fds 3 and 4
-            # Through fresh copies: dup2 onto the same number would keep close-on-exec.
-            reading, writing = os.dup(to_child_r), os.dup(from_child_w)
+            # Through copies above 9 first: either pipe end may already be 3 or 4, and
+            # dup2 onto the same number would keep it close-on-exec.
+            reading = fcntl.fcntl(to_child_r, fcntl.F_DUPFD, 10)
+            writing = fcntl.fcntl(from_child_w, fcntl.F_DUPFD, 10)
             os.dup2(reading, 3)
             os.dup2(writing, 4)
 

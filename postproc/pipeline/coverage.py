@@ -15,8 +15,9 @@ resolution needs); the score multiplies three factors that each reach 1 at "good
 Maps: a top view (samples facing up) and two side views along the wreck's long
 horizontal axis (samples facing each side), a grid of cells holding the area-weighted
 mean score. A gap is a connected set of cells scoring below `gap_score`, or cells with
-no surface at all inside the filled outline of the surface (a hole in the model: the
-dives did not see it well enough to reconstruct it).
+no surface facing the view inside the filled silhouette of the whole surface (a hole in
+the model, or a side nobody filmed: the dives did not see it well enough to
+reconstruct it).
 
 Frames: world W (z up, metres). The angular spread of a sample is twice the largest
 angle between one of its rays and their mean direction (the exact angle for two rays).
@@ -228,7 +229,10 @@ def observe(
             if surface.normals is not None:
                 facing = np.abs(np.sum(surface.normals[near] * to_camera, axis=1)) >= cos_max
                 near, p_cam, pixels, to_camera = (
-                    near[facing], p_cam[facing], pixels[facing], to_camera[facing]
+                    near[facing],
+                    p_cam[facing],
+                    pixels[facing],
+                    to_camera[facing],
                 )
             if rasteriser is not None and len(near):
                 cam_from_world = np.eye(4)
@@ -357,9 +361,13 @@ def coverage_map(
         cell_score = np.where(weight > 0, score_sum / weight, np.nan).reshape(rows, cols)
         cell_views = np.where(weight > 0, views_sum / weight, np.nan).reshape(rows, cols)
     has_surface = (weight > 0).reshape(rows, cols)
-    # The outline: the surface cells, closed over one-cell cracks between samples, filled.
-    closed = ndimage.binary_closing(has_surface, structure=np.ones((3, 3)), iterations=1)
-    outline = ndimage.binary_fill_holes(closed | has_surface)
+    # The outline: the silhouette of the whole surface (not only of what faces this view:
+    # a side nobody filmed is a gap, not a blank), closed over one-cell cracks, filled.
+    silhouette = np.zeros(rows * cols, dtype=bool)
+    silhouette[row * cols + col] = True
+    silhouette = silhouette.reshape(rows, cols)
+    closed = ndimage.binary_closing(silhouette, structure=np.ones((3, 3)), iterations=1)
+    outline = ndimage.binary_fill_holes(closed | silhouette)
     holes = outline & ~has_surface
     poor = has_surface & (np.nan_to_num(cell_score, nan=0.0) < options.gap_score)
     labels, count = ndimage.label(poor | holes, structure=np.ones((3, 3)))

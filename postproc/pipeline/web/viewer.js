@@ -101,7 +101,8 @@
       geometry.setAttribute("color", new THREE.BufferAttribute(bytes(pts.colours), 3, true));
     }
     geometry.computeBoundingBox();
-    bounds.union(geometry.boundingBox);
+    // Framing follows the mesh when there is one (fused points carry far outliers).
+    if (!sceneDoc.mesh) bounds.union(geometry.boundingBox);
     pointsObject = new THREE.Points(
       geometry,
       new THREE.PointsMaterial({ size: 2, sizeAttenuation: false, vertexColors: !!pts.colours,
@@ -300,7 +301,7 @@
   controls.enableDamping = false;
   controls.screenSpacePanning = true;
   function setView(view) {
-    const d = radius * 2.4;
+    const d = radius * 1.8;
     const dirs = { top: [0, -1e-3, 1], side: [0, -1, 0.08], oblique: [0.7, -1.0, 0.8] };
     const dir = new THREE.Vector3(...(dirs[view] || dirs.oblique)).normalize();
     camera.position.copy(centre).addScaledVector(dir, d);

@@ -1,0 +1,212 @@
+"""The report's 3D viewer in headless Chromium (SwiftShader WebGL, offline): it draws,
+its layer toggles change what is drawn, two clicks on the mesh measure a known
+distance, nothing is fetched; and the decimation that keeps the page small."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from postproc.dense.ply import PlyData, read_ply, write_ply
+from postproc.pipeline.browser import HeadlessChromium
+from postproc.pipeline.decimate import cluster_vertices, decimate_mesh, subsample_points
+from postproc.pipeline.project import load_project
+from postproc.pipeline.report import write_report
+from postproc.pipeline.viewer import load_scene, scene_document
+from shared.calibration.aprilgrid import AprilGridTarget
+from shared.calibration.cameras import PinholeRadtan
+from shared.calibration.kalibr import CameraCalibration, write_camchain, write_target_yaml
+from shared.geometry import make_pose, so3_exp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from report_fixture import build
+
+# The fixture's mesh: a 2 m cube centred at (0, 0, -10) moved by H (see report_fixture).
+H = make_pose(so3_exp([0.0, 0.0, -0.4]), [1.0, 1.0, 0.0])
+BACKGROUND = np.array([0x30, 0x26, 0x1D])  # BGR of the viewer's clear colour #1d2630
+
+
+def world(p: list[float]) -> list[float]:
+    return (H[:3, :3] @ np.asarray(p, float) + H[:3, 3]).tolist()
+
+
+def viewer_run(root: Path) -> Path:
+    """The report fixture plus what the viewer draws: vertex colours, fused points, a
+    target, a camera model (so that coverage runs too)."""
+    project, _ = build(root, rng=np.random.default_rng(5))
+    out = root / "out"
+    mesh = read_ply(out / "dense" / "mesh.ply")
+    mesh.colors = np.tile(np.array([[60, 200, 60]], np.uint8), (len(mesh.vertices), 1))
+    write_ply(out / "dense" / "mesh.ply", mesh, overwrite=True)
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-1, 1, (5000, 3))
+    points[np.arange(5000), rng.integers(0, 3, 5000)] = rng.choice([-1.0, 1.0], 5000)
+    points = (points + np.array([0.0, 0.0, -10.0])) @ H[:3, :3].T + H[:3, 3]
+    colours = np.tile(np.array([[230, 60, 60]], np.uint8), (5000, 1))
+    write_ply(out / "dense" / "fused.ply", PlyData(vertices=points, colors=colours))
+    grid = root / "targets" / "grid_a.yaml"
+    write_target_yaml(grid, AprilGridTarget(tag_rows=2, tag_cols=3, tag_size_m=0.1,
+                                            tag_spacing_ratio=0.3))  # fmt: skip
+    pose = make_pose(np.eye(3), world([-1.0, -1.0, -8.999]))
+    (out / "merge" / "targets.json").write_text(
+        json.dumps({"grid_a": {"file": str(grid), "T_W_m": pose.tolist(), "sessions": {}}})
+    )
+    camera = PinholeRadtan(width=320, height=180, fx=250.0, fy=250.0, cx=159.5, cy=89.5)
+    write_camchain(out / "sessions" / "s1" / "calib" / "camchain.yaml",
+                   [CameraCalibration(camera=camera)])  # fmt: skip
+    return project
+
+
+def canvas_image(browser: HeadlessChromium) -> np.ndarray:
+    """The viewer's canvas (BGR) from a screenshot, the panel's corner blanked."""
+    rect = browser.evaluate(
+        "(() => { const r = document.getElementById('wm-canvas').getBoundingClientRect();"
+        " const p = document.getElementById('wm-panel').getBoundingClientRect();"
+        " return [r.x, r.y, r.width, r.height, p.right - r.x, p.bottom - r.y]; })()"
+    )
+    x, y, w, h, panel_w, panel_h = (round(v) for v in rect)
+    png = browser.screenshot()
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    canvas = image[y : y + h, x : x + w].copy()
+    canvas[: panel_h + 2, : panel_w + 2] = BACKGROUND
+    return canvas
+
+
+def drawn_fraction(canvas: np.ndarray) -> float:
+    """Share of canvas pixels that differ from the clear colour."""
+    return float(np.mean(np.abs(canvas.astype(int) - BACKGROUND).max(axis=2) > 24))
+
+
+def green(canvas: np.ndarray) -> np.ndarray:
+    """Pixels of the test mesh's colour (RGB 60, 200, 60 shaded; BGR images)."""
+    b, g, r = (canvas[:, :, k].astype(int) for k in range(3))
+    return (g > r + 40) & (g > b + 40)
+
+
+def open_viewer(browser: HeadlessChromium, url: str) -> int:
+    """Load the page afresh (a change of hash alone would not reload it)."""
+    browser.open("about:blank")
+    browser.wait_for("location.href === 'about:blank'")
+    browser.open(url)
+    browser.wait_for(
+        "window.wreckmapViewer && (window.wreckmapViewer.ready || window.wreckmapViewer.error)"
+    )
+    assert browser.evaluate("window.wreckmapViewer.error") is None, browser.console
+    return int(browser.evaluate("window.wreckmapViewer.frames"))
+
+
+@pytest.mark.timeout(240)
+def test_viewer_draws_toggles_measures_offline(tmp_path: Path) -> None:
+    report = write_report(load_project(viewer_run(tmp_path)))
+    url = report.resolve().as_uri()
+    with HeadlessChromium(width_px=1000, height_px=800, profile_dir=tmp_path / "profile") as b:
+        assert open_viewer(b, url) >= 1
+        full = canvas_image(b)
+        assert drawn_fraction(full) > 0.05  # not blank: the cube fills part of the view
+        # The mesh's colour (green, shaded) is on screen.
+        assert green(full).mean() > 0.02
+        labels = b.evaluate(
+            "[...document.querySelectorAll('#wm-panel input')].map(i => i.id).join(',')"
+        )
+        for layer in ("mesh", "points", "session_s1", "targets", "keyframes"):
+            assert f"wm-layer-{layer}" in labels
+
+        # A URL hash hides the mesh at load: the fused points (red) show through.
+        open_viewer(b, url + "#hide=mesh")
+        hidden = canvas_image(b)
+        changed = np.abs(full.astype(int) - hidden.astype(int)).max(axis=2) > 24
+        assert changed.mean() > 0.02
+        assert not green(hidden).any()
+        b_, g_, r_ = (hidden[:, :, k].astype(int) for k in range(3))
+        assert ((r_ > g_ + 50) & (r_ > b_ + 40)).mean() > 0.002
+        # Unticking the box by a real click draws the same picture as the hash.
+        open_viewer(b, url)
+        frames = b.evaluate("window.wreckmapViewer.frames")
+        box = b.evaluate(
+            "(() => { const r = document.getElementById('wm-layer-mesh')"
+            ".getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })()"
+        )
+        b.click(*box)
+        b.wait_for(f"window.wreckmapViewer.frames > {frames}")
+        clicked = canvas_image(b)
+        assert np.mean(np.abs(clicked.astype(int) - hidden.astype(int)).max(axis=2) > 24) < 0.005
+
+        # Measuring: two clicks on the cube's top face, 1.2 m and 1.1 m apart along its
+        # edges (positions travel quantised: the answer is within a centimetre).
+        open_viewer(b, url)
+        b.evaluate("document.getElementById('wm-measure').click()")
+        a, c = world([-0.6, -0.6, -9.0]), world([0.6, 0.5, -9.0])
+        for point in (a, c):
+            x, y = b.evaluate(f"window.wreckmapViewer.toScreen({json.dumps(point)})")
+            b.click(x, y)
+        measured = b.wait_for("window.wreckmapViewer.lastMeasure_m")
+        assert measured == pytest.approx(np.hypot(1.2, 1.1), abs=0.01)
+        assert f"{measured:.3f} m" in b.evaluate(
+            "document.getElementById('wm-measure-result').textContent"
+        )
+        scale = b.evaluate("document.querySelector('#wm-scalebar span').textContent")
+        assert scale.endswith(" m") or scale.endswith(" cm")
+        # Offline: the page asked for nothing but itself and its inline data.
+        assert b.requests
+        assert all(r.startswith(("file:", "data:")) for r in b.requests), b.requests
+    assert (tmp_path / "out" / "coverage" / "coverage_merged.png").is_file()
+    assert "Largest gaps" in report.read_text() or "no gap found" in report.read_text()
+
+
+def sphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    """A UV sphere of radius 1 m (rows x 2 rows triangles a band)."""
+    rows, cols = subdivisions, 2 * subdivisions
+    theta = np.linspace(0, np.pi, rows + 1)
+    phi = np.linspace(0, 2 * np.pi, cols, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    vertices = np.column_stack(
+        [(np.sin(t) * np.cos(p)).ravel(), (np.sin(t) * np.sin(p)).ravel(), np.cos(t).ravel()]
+    )
+    faces = []
+    for r in range(rows):
+        for c in range(cols):
+            a, b = r * cols + c, r * cols + (c + 1) % cols
+            d, e = a + cols, b + cols
+            faces += [[a, b, e], [a, e, d]]
+    return vertices, np.array(faces)
+
+
+def test_decimation_meets_the_budget_and_keeps_the_shape() -> None:
+    vertices, faces = sphere(120)  # 57,600 triangles
+    colours = np.tile(np.array([[10, 200, 30]], np.uint8), (len(vertices), 1))
+    small = decimate_mesh(vertices, faces, colours, max_triangles=4000)
+    assert 3000 < len(small.faces) <= 4000  # the smallest cell that fits, not far below
+    radius = np.linalg.norm(small.vertices_m, axis=1)
+    assert np.all(np.abs(radius - 1.0) < small.cell_m)  # within one cell of the surface
+    assert small.colours is not None and np.all(small.colours == [10, 200, 30])
+    assert small.faces.max() < len(small.vertices_m)
+    same = decimate_mesh(vertices, faces, None, max_triangles=len(faces))
+    assert same.cell_m == 0.0 and len(same.faces) == len(faces)
+    with pytest.raises(ValueError, match="cell_m must be positive"):
+        cluster_vertices(vertices, faces, None, cell_m=0.0)
+    picked = subsample_points(1000, max_points=300, seed=2)
+    assert len(picked) == 300 and len(np.unique(picked)) == 300
+    assert np.array_equal(subsample_points(10, max_points=300), np.arange(10))
+
+
+def test_scene_document_positions_round_trip(tmp_path: Path) -> None:
+    viewer_run(tmp_path)
+    scene = load_scene(tmp_path / "out", ["s1"], max_triangles=6, max_points=1000)
+    document = scene_document(scene)
+    assert document["mesh"]["full_triangles"] == 12 and document["mesh"]["triangles"] <= 6
+    assert document["points"]["full_count"] == 5000
+    assert len(document["points"]["colours"]) > 0
+    import base64
+
+    q = np.frombuffer(base64.b64decode(document["points"]["positions"]["data"]), "<u2")
+    decoded = np.asarray(document["min_m"]) + q.reshape(-1, 3) * np.asarray(document["step_m"])
+    assert np.max(np.abs(decoded - scene.points_m)) <= max(document["step_m"]) * 0.51
+    assert [s["name"] for s in document["sessions"]] == ["s1"]
+    assert document["sessions"][0]["source"] == "merge/s1/keyframes_merged.tum"
+    assert document["targets"][0]["name"] == "grid_a"
+    assert document["targets"][0]["extent_m"] == pytest.approx([0.36, 0.23])
