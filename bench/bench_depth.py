@@ -76,6 +76,17 @@ def relative(sim: SyntheticDive) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
 
 EVIDENCE: list[float] = []  # of every "ours" answer on the long dives
 FLAGGED: list[str] = []  # long-dive answers flagged ambiguous (should stay empty)
+NEAR: list[float] = []  # offsets (s from the answer) of near alternatives within min_evidence
+Record = tuple[float, bool, float, bool]  # our time error s, refused, the paper's, near warning
+
+
+def near_warning(solution) -> bool:
+    """True when an offset a few sample intervals away fits almost as well (the stage warns)."""
+    a = solution.ambiguity
+    if a.near_offset_s is None or not a.near_evidence < AmbiguityLimits().min_evidence:
+        return False
+    NEAR.append(a.near_offset_s - solution.sync.time_offset_s)
+    return True
 
 
 def ours(traj_t, traj_z, dive_t, depth) -> DepthSync:
@@ -84,6 +95,7 @@ def ours(traj_t, traj_z, dive_t, depth) -> DepthSync:
     EVIDENCE.append(solution.ambiguity.evidence)
     if solution.ambiguity.ambiguous:
         FLAGGED.append("; ".join(solution.ambiguity.reasons))
+    near_warning(solution)
     return solution.sync
 
 
@@ -127,8 +139,8 @@ def time_error_s(sync: DepthSync, sim: SyntheticDive, traj_t: np.ndarray) -> flo
     return float(np.sqrt(np.mean((sync.dive_time_s(traj_t) - true) ** 2)))
 
 
-def part_sync(seeds: int) -> list[tuple[float, bool, float]]:
-    """Part 1; returns (our time error s, refused, the paper's time error s) per dive."""
+def part_sync(seeds: int) -> list[Record]:
+    """Part 1; returns a `Record` per dive."""
     print("Part 1: clock sync, no VIO drift (errors: time RMS over the trajectory, s; depth, m)")
     header = (
         f"{'seed':>4} {'offset_s':>10} {'drift':>6} | {'ours_t':>7} {'paper_t':>7} "
@@ -144,7 +156,7 @@ def part_sync(seeds: int) -> list[tuple[float, bool, float]]:
                 sim = simulate_dive(seed=100 + seed, time_offset_s=offset, drift_ppm=drift)
                 traj_t, traj_z, dive_t, depth = relative(sim)
                 start = time.perf_counter()
-                flagged = len(FLAGGED)
+                flagged, near = len(FLAGGED), len(NEAR)
                 a = ours(traj_t, traj_z, dive_t, depth)
                 t_ours = time.perf_counter() - start
                 start = time.perf_counter()
@@ -158,7 +170,7 @@ def part_sync(seeds: int) -> list[tuple[float, bool, float]]:
                     abs(b.depth_offset_m - sim.depth_offset_m),
                 )
                 rows.append(row)
-                records.append((row[0], len(FLAGGED) > flagged, row[1]))
+                records.append((row[0], len(FLAGGED) > flagged, row[1], len(NEAR) > near))
                 print(
                     f"{seed:>4} {offset:>10.1f} {drift:>6.0f} | {row[0]:>7.3f} {row[1]:>7.3f} "
                     f"{row[1] / row[0]:>6.1f} | {row[2]:>7.3f} {row[3]:>7.3f} | "
@@ -194,8 +206,8 @@ FLAT_RANGES_M = (0.5, 1.0, 2.0)
 FLAT_VIO = ((0.004, 0.05), (0.001, 0.02))
 
 
-def part_flat(seeds: int) -> list[tuple[float, bool, float]]:
-    """Part 5: long flat dives; returns (our time error s, refused, the paper's) per dive."""
+def part_flat(seeds: int) -> list[Record]:
+    """Part 5: long flat dives; returns a `Record` per dive."""
     print(
         "\nPart 5: long flat dives (issue 21): 20-40 min trajectories within 0.5-2 m of depth, "
         "10 s samples, 0.1 m steps, +-50 ppm, VIO z drift 0.4 % of the distance + 5 cm wobble"
@@ -245,10 +257,17 @@ def part_flat(seeds: int) -> list[tuple[float, bool, float]]:
         paper_d = float(np.sqrt(np.mean((b.world_z_m(traj_z) - true_z) ** 2)))
         if not refused:
             depth_errors.append((ours_d, paper_d))
-        records.append((ours_t, refused, paper_t))
+        warned = near_warning(solution)
+        records.append((ours_t, refused, paper_t, warned))
         note = "refused: " + "; ".join(solution.ambiguity.reasons) if refused else ""
         if not refused and ours_t > WRONG_S:
             note = "WRONG"
+        if warned and not refused:
+            near_s = (solution.ambiguity.near_offset_s or 0.0) - a.time_offset_s
+            note += (
+                f" warned: {near_s:+.1f} s fits almost as well "
+                f"(evidence {solution.ambiguity.near_evidence:.1f})"
+            )
         if solution.prior_used and not refused:
             note += " (through the clock prior)"
         vio = f"{100 * drift_per_m:.1f}%/{100 * wobble_m:.0f}cm"
@@ -258,12 +277,14 @@ def part_flat(seeds: int) -> list[tuple[float, bool, float]]:
             f"{solution.ambiguity.evidence:>5.0f} {solution.ambiguity.flat_evidence:>5.0f} | "
             f"{note[:90]}"
         )
-    arr = np.array([(t, r, p) for t, r, p in records], dtype=float)
+    arr = np.array(records, dtype=float)
     answered = arr[:, 1] == 0
+    wrong = answered & (arr[:, 0] > WRONG_S)
     print("-" * len(header))
     print(
         f"flat dives: {arr.shape[0]}, refused {int((~answered).sum())}, wrong (> {WRONG_S:.0f} s) "
-        f"{int(((arr[:, 0] > WRONG_S) & answered).sum())}; median time error ours "
+        f"{int(wrong.sum())} (with the near-offset warning {int((wrong & (arr[:, 3] > 0)).sum())}),"
+        f" warned {int((answered & (arr[:, 3] > 0)).sum())}; median time error ours "
         f"{np.median(arr[answered, 0]):.3f} s, paper {np.median(arr[:, 2]):.3f} s; paper wrong "
         f"{int((arr[:, 2] > WRONG_S).sum())}"
     )
@@ -277,7 +298,7 @@ def part_flat(seeds: int) -> list[tuple[float, bool, float]]:
     return records
 
 
-def targets(today: list[tuple[float, bool, float]], flat: list[tuple[float, bool, float]]) -> None:
+def targets(today: list[Record], flat: list[Record]) -> None:
     """The issue's targets over today's long dives and the flat ones together (all > 20 min)."""
     arr = np.array(today + flat, dtype=float)
     answered = arr[:, 1] == 0
@@ -286,6 +307,8 @@ def targets(today: list[tuple[float, bool, float]], flat: list[tuple[float, bool
     paper_right = arr[:, 2] <= WRONG_S
     wrong_where_paper_right = int(np.sum(answered & (arr[:, 0] > WRONG_S) & paper_right))
     wrong = int(np.sum(answered & (arr[:, 0] > WRONG_S)))
+    silent = int(np.sum(answered & (arr[:, 0] > WRONG_S) & (arr[:, 3] == 0)))
+    warned_right = int(np.sum(answered & (arr[:, 0] <= WRONG_S) & (arr[:, 3] > 0)))
     print(
         f"\nTargets over parts 1, 3 and 5 ({arr.shape[0]} dives, all longer than 20 min; "
         f"{len(today)} of today's + {len(flat)} flat):"
@@ -299,7 +322,8 @@ def targets(today: list[tuple[float, bool, float]], flat: list[tuple[float, bool
     print(
         f"  wrong (> {WRONG_S:.0f} s off) where the paper's method is right: "
         f"{wrong_where_paper_right} (target 0): {verdict[wrong_where_paper_right == 0]}"
-        f"; wrong at all: {wrong}"
+        f"; wrong at all: {wrong}, of them without the near-offset warning: {silent}; "
+        f"right answers with the warning: {warned_right}"
     )
 
 
@@ -414,10 +438,10 @@ def real_profile() -> tuple[np.ndarray, np.ndarray] | None:
     return data[:, 0], data[:, 1]
 
 
-def part_real_shape(seeds: int) -> list[tuple[float, bool, float]]:
+def part_real_shape(seeds: int) -> list[Record]:
     """Both methods on a real dive's shape (a 110 min dive to 54 m with deco stops).
 
-    Returns (our time error s, refused, the paper's time error s) per dive.
+    Returns a `Record` per dive.
     """
     from scipy.interpolate import PchipInterpolator
 
@@ -451,7 +475,7 @@ def part_real_shape(seeds: int) -> list[tuple[float, bool, float]]:
         v, u = v[inside], u[inside]
         depth = truth(start + u) + 0.05 * np.sin(2 * np.pi * u / 4.0)
         depth = np.round(depth + rng.normal(0.0, 0.05, u.size), 1)
-        flagged = len(FLAGGED)
+        flagged, near = len(FLAGGED), len(NEAR)
         try:
             a = ours(traj_t, z, v, depth)
             ours_t = float(
@@ -471,7 +495,8 @@ def part_real_shape(seeds: int) -> list[tuple[float, bool, float]]:
         paper_d = abs(b.depth_offset_m - true_depth[0])
         span = float(np.ptp(true_depth))
         rows.append((ours_t, paper_t, ours_d, paper_d))
-        records.append((ours_t, len(FLAGGED) > flagged or not np.isfinite(ours_t), paper_t))
+        refused = len(FLAGGED) > flagged or not np.isfinite(ours_t)
+        records.append((ours_t, refused, paper_t, len(NEAR) > near))
         print(
             f"  start {start / 60:5.1f} min, depth span {span:5.1f} m, offset {offset:9.1f} s, "
             f"drift {drift:5.1f}: ours {ours_t:6.3f} s {ours_d:6.3f} m | paper {paper_t:7.3f} s "
@@ -496,7 +521,14 @@ def part_short_dives(seeds: int) -> None:
     )
     limits = AmbiguityLimits(min_depth_range_m=0.5)
     prior = ClockPrior(window_s=300.0, zone_step_s=900.0)
-    counts = {"old wrong": 0, "old refused": 0, "new wrong": 0, "new refused": 0, "prior": 0}
+    counts = {
+        "old wrong": 0,
+        "old refused": 0,
+        "new wrong": 0,
+        "new refused": 0,
+        "prior": 0,
+        "near": 0,
+    }
     right_evidence, wrong_evidence = [], []
     n = 0
     for seed in range(1, seeds + 1):
@@ -529,10 +561,13 @@ def part_short_dives(seeds: int) -> None:
             elif wrong:
                 counts["new wrong"] += 1
             counts["prior"] += solution.prior_used and not solution.ambiguity.ambiguous
+            answered = not solution.ambiguity.ambiguous
+            counts["near"] += answered and near_warning(solution)
     print(
         f"  {n} sessions | old rule: silently wrong {counts['old wrong']}, refused "
         f"{counts['old refused']} | now: silently wrong {counts['new wrong']}, refused "
-        f"{counts['new refused']}, answered thanks to the clock prior {counts['prior']}"
+        f"{counts['new refused']}, answered thanks to the clock prior {counts['prior']}, "
+        f"answered with the near-offset warning {counts['near']}"
     )
     if right_evidence:
         q = np.percentile(right_evidence, [10, 50, 90])

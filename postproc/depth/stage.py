@@ -460,6 +460,17 @@ def _search(
             solution.prior_distance_s,
             prior.describe(),
         )
+    if ambiguity.near_offset_s is not None and ambiguity.near_evidence < options.min_evidence:
+        log.warning(
+            "%s: the clock offset %.1f s is known only to within %.0f s: %.1f s fits almost as "
+            "well (evidence %.1f; the depth offset would move by %.3f m)",
+            dive.label,
+            sync.time_offset_s,
+            abs(ambiguity.near_offset_s - sync.time_offset_s),
+            ambiguity.near_offset_s,
+            ambiguity.near_evidence,
+            (ambiguity.near_depth_offset_m or 0.0) - sync.depth_offset_m,
+        )
     log.info(
         "%s: clock offset %.3f +- %.3f s, drift %.1f +- %.1f ppm, depth offset %.3f m "
         "(evidence %.1f over the next offset%s)",
@@ -510,10 +521,15 @@ def _ambiguity_document(ambiguity: OffsetAmbiguity, dives: list[_DiveData]) -> d
         "runner_up_depth_offset_m": ambiguity.runner_up_depth_offset_m,
         "evidence": _number(ambiguity.evidence),
         "flat_evidence": _number(ambiguity.flat_evidence),
+        "near_offset_s": ambiguity.near_offset_s,
+        "near_evidence": _number(ambiguity.near_evidence),
+        "near_depth_offset_m": ambiguity.near_depth_offset_m,
         "solutions_compared": ambiguity.solutions,
         "evidence_meaning": "samples x (mean Huber cost of the best clearly different offset - "
         "that of the answer), costs at cost_sigma_m, plus the difference of their prior costs; "
-        "null: no other offset fits at all; flat_evidence: the same against a constant depth",
+        "null: no other offset fits at all; flat_evidence: the same against a constant depth; "
+        "near_*: the best fit a few sample intervals away (below min_evidence: a warning, the "
+        "time is known only to that distance; the depth hardly moves)",
     }
 
 

@@ -44,7 +44,10 @@ every candidate (of every dive) are compared at one noise scale (two fits of a
 dive on the samples both use, `cost_gap`), and the offset counts as known only
 when each clearly different one fits worse by a margin (`evidence`), the fit
 beats a flat profile by that margin too (`flat_profile_fit`), and the overlap
-has enough samples and curvature. When it does not, a `ClockPrior` (the two
+has enough samples and curvature. The best fit a bob period or two away
+(`near_alternative`) is reported beside it, not a reason to refuse: it moves
+the depth by a centimetre, though the time may be that far off. When the
+offset is not known, a `ClockPrior` (the two
 wall clocks agree within minutes, apart from time-zone steps) may restrict the
 search; otherwise the caller is told that the offset is ambiguous.
 
@@ -901,6 +904,12 @@ class OffsetAmbiguity:
     flat_evidence: the same measure against a flat profile (the depths
         fitted with no trajectory, `flat_profile_fit`): how much the
         trajectory explains at all; inf when not computed.
+    near_offset_s, near_evidence, near_depth_offset_m: the best fit a few
+        sample intervals from the answer (`near_alternative`: a finning bob's
+        period away, where no coarse candidate lies), its evidence and depth
+        offset; None / inf when none was found. Not a reason to refuse: such
+        an offset moves the depth by near_depth_offset_m - the answer's, a
+        centimetre or so on a flat dive, but the time may be that far off.
     """
 
     samples: int
@@ -918,6 +927,9 @@ class OffsetAmbiguity:
     solutions: int
     reasons: tuple[str, ...]
     flat_evidence: float = math.inf
+    near_offset_s: float | None = None
+    near_evidence: float = math.inf
+    near_depth_offset_m: float | None = None
 
     @property
     def ambiguous(self) -> bool:
@@ -1152,6 +1164,35 @@ class _FitContext:
         return Solution(self.index, sync, depth_range, z_range, flat_residuals, flat_prior, mask)
 
 
+def near_alternative(
+    context: _FitContext, best: Solution, *, min_separation_s: float, cost_sigma_m: float
+) -> tuple[Solution, float] | None:
+    """The best distinct fit within two sample intervals of `best`, and how much worse it is.
+
+    The fine profile (`offset_profile`) over +-2 sample intervals around the
+    answer, its local minima (the least within +-1 s) outside max(
+    min_separation_s, 3 sigma) of it, each fitted; the one of least
+    `cost_gap` is returned with that gap (nats). None when there is none.
+    """
+    sync = best.sync
+    interval = sample_interval_s(context.dive_t)
+    offsets, cost = context.profile(sync.time_offset_s, 2.0 * interval, sync.drift_ppm)
+    apart = max(min_separation_s, 3.0 * sync.time_offset_sigma_s)
+    half = max(1, round(1.0 / float(offsets[1] - offsets[0]))) if offsets.size > 1 else 1
+    padded = np.concatenate([np.full(half, np.inf), cost, np.full(half, np.inf)])
+    least = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1).min(axis=1)
+    keep = np.isfinite(cost) & (cost <= least) & (np.abs(offsets - sync.time_offset_s) > apart)
+    found: tuple[Solution, float] | None = None
+    for index in np.flatnonzero(keep)[np.argsort(cost[keep], kind="stable")][:3]:
+        near = context.solution(float(offsets[index]), sync.drift_ppm)
+        if near is None or abs(near.sync.time_offset_s - sync.time_offset_s) <= apart:
+            continue
+        gap = cost_gap(best, near, cost_sigma_m)
+        if found is None or gap < found[1]:
+            found = (near, gap)
+    return found
+
+
 def _fitted_solutions(
     traj_t: FloatArray,
     traj_z: FloatArray,
@@ -1300,7 +1341,9 @@ def solve_clock_offset(
         candidates=coarse[best.dive],
     )
     if not ambiguity.ambiguous or prior is None:
-        return answer
+        return _with_near(
+            answer, traj_t, traj_z, arrays, search, fit, z_rate_sigma, lim, best, solutions
+        )
     inside, inside_coarse, _ = _fitted_solutions(
         traj_t,
         traj_z,
@@ -1328,7 +1371,7 @@ def solve_clock_offset(
                 f"(evidence {gap:.1f})",
             ),
         )
-    return ClockSolution(
+    answer = ClockSolution(
         dive=chosen.dive,
         sync=chosen.sync,
         ambiguity=inside_ambiguity,
@@ -1337,4 +1380,72 @@ def solve_clock_offset(
         prior_used=True,
         prior_distance_s=distance(chosen.sync.time_offset_s),
         candidates=inside_coarse[chosen.dive],
+    )
+    return _with_near(
+        answer, traj_t, traj_z, arrays, search, fit, z_rate_sigma, lim, chosen, inside
+    )
+
+
+def _with_near(
+    answer: ClockSolution,
+    traj_t: FloatArray,
+    traj_z: FloatArray,
+    dives: list[tuple[FloatArray, FloatArray]],
+    search: dict[str, float],
+    fit: dict[str, float | bool],
+    z_rate_sigma_m_per_s: float | None,
+    lim: AmbiguityLimits,
+    best: Solution,
+    solutions: list[Solution],
+) -> ClockSolution:
+    """The answer with its near alternative (`near_alternative`) in its ambiguity.
+
+    A near fit better than the answer (on the samples both use) takes its place,
+    assessed against the same solutions, and the old answer becomes its near
+    alternative.
+    """
+    dive_t, depth = dives[answer.dive]
+    context = _FitContext(
+        index=answer.dive,
+        traj_t=traj_t,
+        traj_z=traj_z,
+        dive_t=dive_t,
+        depth=depth,
+        max_gap_s=search["max_gap_s"],
+        noise_sigma_m=lim.noise_sigma_m,
+        z_rate_sigma_m_per_s=z_rate_sigma_m_per_s,
+        fit=fit,
+        prior=answer.prior if answer.prior_used else None,
+    )
+    near = near_alternative(
+        context,
+        best,
+        min_separation_s=lim.min_separation_s,
+        cost_sigma_m=answer.ambiguity.cost_sigma_m,
+    )
+    ambiguity = answer.ambiguity
+    if near is not None and near[1] < 0.0:
+        rebest, reassessed = assess_offset([near[0], *solutions], lim)
+        if rebest is near[0]:
+            best, ambiguity = rebest, reassessed
+            near = near_alternative(
+                context,
+                best,
+                min_separation_s=lim.min_separation_s,
+                cost_sigma_m=ambiguity.cost_sigma_m,
+            )
+    if near is not None:
+        ambiguity = dataclasses.replace(
+            ambiguity,
+            near_offset_s=near[0].sync.time_offset_s,
+            near_evidence=near[1],
+            near_depth_offset_m=near[0].sync.depth_offset_m,
+        )
+    offset_s = best.sync.time_offset_s
+    return dataclasses.replace(
+        answer,
+        sync=best.sync,
+        ambiguity=ambiguity,
+        search_ambiguity=answer.search_ambiguity if answer.prior_used else ambiguity,
+        prior_distance_s=None if answer.prior is None else float(answer.prior.distance_s(offset_s)),
     )

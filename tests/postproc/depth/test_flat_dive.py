@@ -25,7 +25,11 @@ from postproc.depth.sync import (
     flat_profile_fit,
     mean_huber_cost,
     offset_profile,
+    solve_clock_offset,
 )
+from shared.formats.diveprofile import DiveProfile, stamp_s_to_iso, write_dive
+from shared.formats.tum import write_tum
+from shared.trajectory import Trajectory
 
 from .inputs import relative_inputs, write_inputs
 
@@ -149,3 +153,56 @@ def test_offset_profile_and_flat_null_model():
     )
     gain = sync.used * (mean_huber_cost(residuals, 0.06) - mean_huber_cost(sync.residuals_m, 0.06))
     assert abs(gain) < 1.0
+
+
+def _aliased_dive(folder):
+    """A 20 min dive with an 8 s finning bob that 10 s samples alias: +8 s fits as well."""
+    rng = np.random.default_rng(0)
+    epoch_s = 1_700_000_000.0
+
+    def depth_at(t_s):
+        return 12.0 + 0.2 * np.sin(2 * np.pi * t_s / 8.0) + 0.6 * np.tanh((t_s - 600.0) / 150.0)
+
+    traj_t = np.arange(0.0, 1200.0, 0.2)
+    z = -(depth_at(traj_t) - depth_at(0.0))
+    poses = np.repeat(np.eye(4)[None], traj_t.size, axis=0)
+    poses[:, 2, 3] = z
+    offset_s = 41.7
+    dive_t = np.arange(-300.0, 1500.0, 10.0) + 0.3
+    depth = np.round(depth_at(dive_t - offset_s) + rng.normal(0.0, 0.02, dive_t.size), 1)
+    stamps_ns = np.rint((epoch_s + traj_t) * 1e9).astype(np.int64)
+    trajectory = write_tum(folder / "trajectory.tum", Trajectory(stamps_ns, poses))
+    profile = DiveProfile(
+        stamps_s=epoch_s + dive_t,
+        depth_m=depth,
+        temperature_c=np.full(dive_t.size, 27.0),
+        start_iso=stamp_s_to_iso(epoch_s + dive_t[0] - 10.0),
+        model="Simulated Perdix",
+        serial="SIM0001",
+        fingerprint="00000001",
+        source="test",
+        sample_interval_s=10.0,
+    )
+    write_dive(folder / "dives", profile)
+    return trajectory, folder / "dives", offset_s, (traj_t, z, dive_t, depth)
+
+
+def test_an_offset_one_bob_period_away_is_reported(tmp_path, caplog):
+    trajectory, dives, offset_s, arrays = _aliased_dive(tmp_path)
+    solution = solve_clock_offset(*arrays[:2], [arrays[2:]], max_offset_s=3600.0)
+    ambiguity = solution.ambiguity
+    # The coarse search keeps one minimum per sample interval: the alias is not among
+    # the candidates, so the assessment alone would call the answer certain.
+    assert not ambiguity.ambiguous and ambiguity.evidence > DepthOptions().min_evidence
+    assert abs(solution.sync.time_offset_s - offset_s) < 0.5
+    assert ambiguity.near_offset_s == pytest.approx(offset_s + 8.0, abs=0.5)
+    assert ambiguity.near_evidence < DepthOptions().min_evidence
+    assert abs(ambiguity.near_depth_offset_m - solution.sync.depth_offset_m) < 0.05
+    with caplog.at_level("WARNING", logger="postproc.depth.stage"):
+        doc = json.loads(
+            run(
+                DepthOptions(fuse=False, plot=False), trajectory, dives, tmp_path / "out"
+            ).read_text()
+        )
+    assert "known only to within 8 s" in caplog.text
+    assert doc["offset_ambiguity"]["near_offset_s"] == pytest.approx(offset_s + 8.0, abs=0.5)
