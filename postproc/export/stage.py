@@ -155,7 +155,8 @@ def write_ortho(
     to_map = ortho.map_from_world(georef, position)
     vertices = mesh.vertices.copy()
     vertices[:, :2] = mesh.vertices[:, :2] @ to_map[:2, :2].T + to_map[:2, 2]
-    grid = ortho.raster_grid(vertices[:, :2], options.resolution_m)
+    # Only the vertices the triangles use (a trimmed mesh keeps its unused ones).
+    grid = ortho.raster_grid(vertices[np.unique(mesh.faces), :2], options.resolution_m)
     log.info("ortho: %d x %d cells at %g m", grid.width, grid.height, grid.resolution_m)
     elevation, rgb = ortho.rasterise_top_down(vertices, mesh.faces, mesh.colors, grid)
     valid = np.isfinite(elevation)
