@@ -178,91 +178,109 @@ def surface_from_points(
     return SurfaceSamples(points_m=p, normals=n, areas_m2=np.full(len(p), spacing_m**2))
 
 
-def observe(
+@dataclass(kw_only=True)
+class Sightings:
+    """Every (sample, keyframe) pair that passed the tests: sample index, unit direction
+    from the sample to the camera (W) and range (m)."""
+
+    samples: IntArray
+    directions: FloatArray
+    ranges_m: FloatArray
+
+
+def sightings(
     surface: SurfaceSamples,
-    sessions: Sequence[KeyframeViews],
+    session: KeyframeViews,
     options: CoverageOptions,
     *,
     occluder: tuple[FloatArray, IntArray] | None = None,
-) -> Observations:
-    """Views, spread, nearest range and score of every sample, from all keyframes of
-    `sessions`; `occluder` (vertices m, faces) hides what is behind it."""
+) -> Sightings:
+    """What each keyframe of `session` saw of the surface (see the module docstring);
+    `occluder` (vertices m, faces) hides what is behind it."""
     from postproc.dense.zbuffer import MeshRasteriser, scaled_intrinsics
 
     p = surface.points_m
-    n_samples = len(p)
     rasteriser = None
     if occluder is not None and options.occlusion_width_px > 0 and len(occluder[1]):
         rasteriser = MeshRasteriser(occluder[0], occluder[1])
     cos_max = np.cos(np.deg2rad(options.max_incidence_deg))
-    sample_idx: list[IntArray] = []
-    directions: list[FloatArray] = []
-    ranges: list[FloatArray] = []
-    for session in sessions:
-        camera = session.camera
-        width, height = int(camera.width), int(camera.height)
-        factor = min(1.0, options.occlusion_width_px / max(width, 1))
-        small_w, small_h = max(1, round(width * factor)), max(1, round(height * factor))
-        K_small = scaled_intrinsics(np.asarray(camera.intrinsic_matrix, float), factor)
-        for world_from_cam in np.asarray(session.world_from_cam, dtype=np.float64):
-            R, c = world_from_cam[:3, :3], world_from_cam[:3, 3]
-            offset = p - c
-            distance = np.linalg.norm(offset, axis=1)
-            near = np.flatnonzero(distance <= options.max_range_m)
-            if len(near) == 0:
-                continue
-            p_cam = offset[near] @ R  # R^T (p - c), row-wise
-            ahead = p_cam[:, 2] > 0.05
-            near, p_cam = near[ahead], p_cam[ahead]
-            if len(near) == 0:
-                continue
-            pixels = camera.project(p_cam)
-            inside = (
-                np.isfinite(pixels).all(axis=1)
-                & (pixels[:, 0] >= -0.5)
-                & (pixels[:, 0] < width - 0.5)
-                & (pixels[:, 1] >= -0.5)
-                & (pixels[:, 1] < height - 0.5)
+    sample_idx: list[IntArray] = [np.zeros(0, dtype=np.int64)]
+    directions: list[FloatArray] = [np.zeros((0, 3))]
+    ranges: list[FloatArray] = [np.zeros(0)]
+    camera = session.camera
+    width, height = int(camera.width), int(camera.height)
+    factor = min(1.0, options.occlusion_width_px / max(width, 1))
+    small_w, small_h = max(1, round(width * factor)), max(1, round(height * factor))
+    K_small = scaled_intrinsics(np.asarray(camera.intrinsic_matrix, float), factor)
+    for world_from_cam in np.asarray(session.world_from_cam, dtype=np.float64):
+        R, c = world_from_cam[:3, :3], world_from_cam[:3, 3]
+        offset = p - c
+        distance = np.linalg.norm(offset, axis=1)
+        near = np.flatnonzero(distance <= options.max_range_m)
+        if len(near) == 0:
+            continue
+        p_cam = offset[near] @ R  # R^T (p - c), row-wise
+        ahead = p_cam[:, 2] > 0.05
+        near, p_cam = near[ahead], p_cam[ahead]
+        if len(near) == 0:
+            continue
+        pixels = camera.project(p_cam)
+        inside = (
+            np.isfinite(pixels).all(axis=1)
+            & (pixels[:, 0] >= -0.5)
+            & (pixels[:, 0] < width - 0.5)
+            & (pixels[:, 1] >= -0.5)
+            & (pixels[:, 1] < height - 0.5)
+        )
+        near, p_cam, pixels = near[inside], p_cam[inside], pixels[inside]
+        to_camera = -offset[near] / distance[near, None]
+        if surface.normals is not None:
+            facing = np.abs(np.sum(surface.normals[near] * to_camera, axis=1)) >= cos_max
+            near, p_cam, pixels, to_camera = (
+                near[facing],
+                p_cam[facing],
+                pixels[facing],
+                to_camera[facing],
             )
-            near, p_cam, pixels = near[inside], p_cam[inside], pixels[inside]
-            to_camera = -offset[near] / distance[near, None]
-            if surface.normals is not None:
-                facing = np.abs(np.sum(surface.normals[near] * to_camera, axis=1)) >= cos_max
-                near, p_cam, pixels, to_camera = (
-                    near[facing],
-                    p_cam[facing],
-                    pixels[facing],
-                    to_camera[facing],
-                )
-            if rasteriser is not None and len(near):
-                cam_from_world = np.eye(4)
-                cam_from_world[:3, :3] = R.T
-                cam_from_world[:3, 3] = -R.T @ c
-                depth = rasteriser.depth_map(
-                    cam_from_world, K_small, small_w, small_h,
-                    max_range_m=options.max_range_m + 1.0,
-                )  # fmt: skip
-                # Pinhole pixel of the sample in the small map (occlusion is coarse: the
-                # lens distortion moves a sample by a fraction of a small pixel).
-                uv = p_cam[:, :2] / p_cam[:, 2:3] @ K_small[:2, :2].T + K_small[:2, 2]
-                u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, small_w - 1)
-                v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, small_h - 1)
-                z = p_cam[:, 2]
-                # A pixel's depth is taken at its centre, not at the sample: allow for a
-                # slanted surface across one coarse pixel.
-                tolerance = 0.1 + 0.05 * z
-                visible = z <= depth[v, u] + tolerance
-                near, to_camera, p_cam = near[visible], to_camera[visible], p_cam[visible]
-            sample_idx.append(near)
-            directions.append(to_camera)
-            ranges.append(np.linalg.norm(p_cam, axis=1))
+        if rasteriser is not None and len(near):
+            cam_from_world = np.eye(4)
+            cam_from_world[:3, :3] = R.T
+            cam_from_world[:3, 3] = -R.T @ c
+            depth = rasteriser.depth_map(
+                cam_from_world, K_small, small_w, small_h,
+                max_range_m=options.max_range_m + 1.0,
+            )  # fmt: skip
+            # Pinhole pixel of the sample in the small map (occlusion is coarse: the
+            # lens distortion moves a sample by a fraction of a small pixel).
+            uv = p_cam[:, :2] / p_cam[:, 2:3] @ K_small[:2, :2].T + K_small[:2, 2]
+            u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, small_w - 1)
+            v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, small_h - 1)
+            z = p_cam[:, 2]
+            # A pixel's depth is taken at its centre, not at the sample: allow for a
+            # slanted surface across one coarse pixel.
+            tolerance = 0.1 + 0.05 * z
+            visible = z <= depth[v, u] + tolerance
+            near, to_camera, p_cam = near[visible], to_camera[visible], p_cam[visible]
+        sample_idx.append(near)
+        directions.append(to_camera)
+        ranges.append(np.linalg.norm(p_cam, axis=1))
+    return Sightings(
+        samples=np.concatenate(sample_idx),
+        directions=np.concatenate(directions),
+        ranges_m=np.concatenate(ranges),
+    )
+
+
+def aggregate(n_samples: int, seen: Sequence[Sightings], options: CoverageOptions) -> Observations:
+    """Views, spread, nearest range and score per sample from the sightings of one or
+    more sessions together."""
     views = np.zeros(n_samples, dtype=np.int64)
     spread = np.zeros(n_samples)
     nearest = np.full(n_samples, np.inf)
-    if sample_idx:
-        idx = np.concatenate(sample_idx)
-        d = np.concatenate(directions)
-        r = np.concatenate(ranges)
+    idx = np.concatenate([s.samples for s in seen]) if seen else np.zeros(0, np.int64)
+    if len(idx):
+        d = np.concatenate([s.directions for s in seen])
+        r = np.concatenate([s.ranges_m for s in seen])
         views = np.bincount(idx, minlength=n_samples).astype(np.int64)
         mean = np.zeros((n_samples, 3))
         np.add.at(mean, idx, d)
@@ -276,6 +294,19 @@ def observe(
         nearest_range_m=nearest,
         score=score_samples(views, spread, nearest, options),
     )
+
+
+def observe(
+    surface: SurfaceSamples,
+    sessions: Sequence[KeyframeViews],
+    options: CoverageOptions,
+    *,
+    occluder: tuple[FloatArray, IntArray] | None = None,
+) -> Observations:
+    """Views, spread, nearest range and score of every sample, from all keyframes of
+    `sessions` together; `occluder` (vertices m, faces) hides what is behind it."""
+    seen = [sightings(surface, s, options, occluder=occluder) for s in sessions]
+    return aggregate(len(surface.points_m), seen, options)
 
 
 def score_samples(

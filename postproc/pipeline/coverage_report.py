@@ -32,10 +32,11 @@ from postproc.pipeline.coverage import (
     Gap,
     KeyframeViews,
     SurfaceSamples,
+    aggregate,
     auto_cell_m,
     coverage_map,
     nearest_target,
-    observe,
+    sightings,
     surface_from_mesh,
     surface_from_points,
 )
@@ -128,8 +129,10 @@ def compute_run_coverage(
     cell = options.cell_m or auto_cell_m(surface)
     groups = [(s.name, [s]) for s in sessions] if len(sessions) > 1 else []
     groups.append(("merged", sessions))
+    # Each session's sightings once; a group (one session, or all) aggregates them.
+    seen_by = {s.name: sightings(surface, s, options, occluder=occluder) for s in sessions}
     for label, group in groups:
-        seen = observe(surface, group, options, occluder=occluder)
+        seen = aggregate(len(surface.points_m), [seen_by[s.name] for s in group], options)
         result.maps[label] = {
             view: coverage_map(surface, seen.score, seen.views, view, options, cell_m=cell)
             for view in VIEWS

@@ -152,3 +152,25 @@ def test_nearest_target() -> None:
     assert found is not None and found.target == "b"
     assert found.offset_m == pytest.approx([-1.0, 1.0, 0.0])
     assert nearest_target(np.zeros(3), {}) is None
+
+
+def test_sessions_aggregate_to_the_merged_coverage() -> None:
+    """Two halves of the survey as two sessions: together they see what the whole does."""
+    from postproc.pipeline.coverage import aggregate, sightings
+
+    vertices, faces = seabed(step_m=0.5)
+    surface = surface_from_mesh(vertices, faces)
+    options = CoverageOptions()
+    whole = survey()
+    half = len(whole.world_from_cam) // 2
+    first = KeyframeViews(name="a", world_from_cam=whole.world_from_cam[:half],
+                          camera=whole.camera)  # fmt: skip
+    second = KeyframeViews(name="b", world_from_cam=whole.world_from_cam[half:],
+                           camera=whole.camera)  # fmt: skip
+    seen = [sightings(surface, s, options) for s in (first, second)]
+    merged = aggregate(len(surface.points_m), seen, options)
+    alone = [aggregate(len(surface.points_m), [s], options) for s in seen]
+    reference = observe(surface, [whole], options)
+    assert np.array_equal(merged.views, reference.views)
+    assert np.array_equal(merged.views, alone[0].views + alone[1].views)
+    assert np.allclose(merged.score, reference.score)
