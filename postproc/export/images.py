@@ -12,8 +12,9 @@ from shared.progress import progress
 
 
 def link_or_copy_images(names: Iterable[str], src_dir: Path, dst_dir: Path) -> int:
-    """Put `src_dir/name` at `dst_dir/name` for every name (a hard link, or a copy across
-    filesystems); returns the count. Raises InputError naming the first missing image."""
+    """Put `src_dir/name` at `dst_dir/name` for every name (a hard link to the file, or a
+    copy across filesystems; never a symbolic link); returns the count. Raises InputError
+    naming the first missing image."""
     names = list(names)
     missing = [n for n in names if not (src_dir / n).is_file()]
     if missing:
@@ -24,8 +25,11 @@ def link_or_copy_images(names: Iterable[str], src_dir: Path, dst_dir: Path) -> i
     for name in progress(names, total=len(names), desc="images", unit="image"):
         target = dst_dir / name
         target.parent.mkdir(parents=True, exist_ok=True)
+        # The SfM stage's images/ are symbolic links: link (or copy) what they point to,
+        # so the export stands on its own.
+        source = (src_dir / name).resolve()
         try:
-            os.link(src_dir / name, target)
+            os.link(source, target)
         except OSError:
-            shutil.copy2(src_dir / name, target)
+            shutil.copy2(source, target)
     return len(names)

@@ -23,6 +23,7 @@ stay relative to the sea surface at the time of the dive (no tide correction).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -88,11 +89,14 @@ def rasterise_top_down(
     faces: npt.NDArray[np.int64],
     colors: npt.NDArray[np.uint8] | None,
     grid: RasterGrid,
+    *,
+    on_progress: Callable[[int], None] | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8]]:
     """The mesh seen from above on `grid`: elevation (H, W) float32 (the highest surface
     over each cell centre, NaN where none) and RGB (H, W, 3) uint8 of that surface
     (vertex colours interpolated; grey without colours). Vertices are (x, y, z) in the
-    grid's frame, metres."""
+    grid's frame, metres. on_progress: called with the number of triangles done after
+    each vectorised pass (a progress bar)."""
     V = np.asarray(vertices_m, float)
     F = np.asarray(faces, np.int64).reshape(-1, 3)
     C = np.full((len(V), 3), 160.0) if colors is None else np.asarray(colors, float)
@@ -140,7 +144,11 @@ def rasterise_top_down(
         top = z >= best[cell]
         colour = np.einsum("ij,ijk->ik", w[top], C[F[ti[top]]])
         rgb[cell[top]] = colour
+        if on_progress is not None:
+            on_progress(stop - start)
         start = stop
+    if on_progress is not None:
+        on_progress(len(F) - len(tris))  # the triangles that cover no cell centre
     elevation = np.where(np.isfinite(best), best, np.nan).reshape(height, width)
     image = np.clip(np.rint(rgb), 0, 255).astype(np.uint8).reshape(height, width, 3)
     image[~np.isfinite(elevation)] = 0

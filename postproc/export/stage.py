@@ -158,7 +158,15 @@ def write_ortho(
     # Only the vertices the triangles use (a trimmed mesh keeps its unused ones).
     grid = ortho.raster_grid(vertices[np.unique(mesh.faces), :2], options.resolution_m)
     log.info("ortho: %d x %d cells at %g m", grid.width, grid.height, grid.resolution_m)
-    elevation, rgb = ortho.rasterise_top_down(vertices, mesh.faces, mesh.colors, grid)
+    from shared.progress import progress_bar
+
+    bar = progress_bar(total=len(mesh.faces), desc="ortho", unit="triangle")
+    try:
+        elevation, rgb = ortho.rasterise_top_down(
+            vertices, mesh.faces, mesh.colors, grid, on_progress=bar.update
+        )
+    finally:
+        bar.close()
     valid = np.isfinite(elevation)
     epsg = georef.epsg if georef else None
     frame = f"EPSG:{epsg}" if epsg else "wreckmap local world frame (x, y, z up; metres)"

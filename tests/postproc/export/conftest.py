@@ -100,11 +100,17 @@ def build_run(root: Path) -> RunFixture:
             if pc[p, 2] > 0 and 2 <= u < WIDTH - 2 and 2 <= v < HEIGHT - 2
         ]
         observations.append(seen)
-        name = f"s1/{1_700_000_000_000_000_000 + k * 100_000_000}.png"
+        # As the stages lay them out: the keyframe in the SLAM folder, and a link to it
+        # named <session>/<stamp>.png in sfm/images.
+        stamp = 1_700_000_000_000_000_000 + k * 100_000_000
+        name = f"s1/{stamp}.png"
         names.append(name)
         image = rng.integers(0, 255, (HEIGHT, WIDTH, 3), dtype=np.uint8)
+        keyframe = root / "sessions" / "s1" / "keyframes" / f"{stamp}.png"
+        keyframe.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(keyframe), image)
         (root / "sfm" / "images" / name).parent.mkdir(exist_ok=True)
-        cv2.imwrite(str(root / "sfm" / "images" / name), image)
+        (root / "sfm" / "images" / name).symlink_to(keyframe.resolve())
     write_known_pose_model(
         root / "sfm" / "sparse" / "0", camera_model="OPENCV", camera_params=PARAMS,
         size=(WIDTH, HEIGHT), image_names=names,

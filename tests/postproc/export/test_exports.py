@@ -111,7 +111,9 @@ def test_colmap_text_model_reads_back_as_the_binary_one(
     for image_id, image in binary.images.items():
         other = text.images[image_id]
         assert other.name == image.name
-        assert (exported / "colmap" / "images" / image.name).is_file()
+        copied = exported / "colmap" / "images" / image.name
+        assert copied.is_file() and not copied.is_symlink()
+        assert copied.read_bytes() == (run_folder.root / "sfm" / "images" / image.name).read_bytes()
         np.testing.assert_allclose(
             other.cam_from_world().matrix(), image.cam_from_world().matrix(), atol=1e-12
         )
@@ -247,7 +249,7 @@ def test_missing_inputs_are_named(tmp_path: Path) -> None:
     (fixture.root / "dense" / "mesh.ply").unlink()
     with pytest.raises(InputError, match=r"no mesh \(expected dense/mesh.ply\)"):
         run(ExportOptions(formats=("glb",)), fixture.root, tmp_path / "out")
-    (fixture.root / "sfm" / "images" / fixture.names[2]).unlink()
+    (fixture.root / "sfm" / "images" / fixture.names[2]).resolve().unlink()
     with pytest.raises(InputError, match="1 of 6 images the model names are missing"):
         run(ExportOptions(formats=("colmap-text",)), fixture.root, tmp_path / "out2")
     with pytest.raises(ValueError, match="unknown export format"):
