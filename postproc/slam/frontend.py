@@ -11,8 +11,17 @@ equalised with CLAHE (turbid water flattens contrast), then:
 2. survivors are checked against one essential matrix (RANSAC) on
    undistorted normalised coordinates, which rejects tracks that slid along
    edges or locked onto moving particles;
-3. new corners (Shi-Tomasi) fill empty cells of a grid so features stay spread
-   over the image, up to `max_features`.
+3. through a feature drought (a dark or blurred frame, the camera swept past the
+   wreck: fewer than `drought_min_tracks` survive), the features of the last
+   well-tracked frame (the anchor, up to `drought_max_s` old) are tracked
+   into the new image, seeded by the gyro rotation accumulated since then; those
+   that pass both checks come back with their old ids, so the backend's landmarks
+   carry on instead of a new map starting from scratch;
+4. new corners (Shi-Tomasi) fill empty cells of a grid so features stay spread
+   over the image, up to `max_features`. Each cell's threshold is relative to its
+   own strongest corner (a flat cell fills from weaker corners); a cell that
+   still yields fewer than its share is searched again at
+   `quality_level * weak_quality_factor`.
 
 Features carry stable integer track ids; the output is a `FrameTracks` with
 both distorted pixels (in the frontend image) and undistorted normalised
@@ -48,6 +57,11 @@ class FrontendOptions:
     max_forward_backward_px: forward-backward consistency bound.
     ransac_threshold_px: epipolar distance bound of the essential-matrix RANSAC.
     border_px: features closer than this to the image border are dropped.
+    weak_quality_factor: a grid cell that gives fewer corners than its share at
+        `quality_level` is searched again at this fraction of it (1: never).
+    drought_min_tracks / drought_max_s / anchor_min_tracks: below `drought_min_tracks`
+        surviving tracks the frontend re-tracks the anchor (the last frame that kept at
+        least `anchor_min_tracks`) if it is at most `drought_max_s` old.
     """
 
     width_px: int = 960
@@ -64,6 +78,10 @@ class FrontendOptions:
     max_forward_backward_px: float = 1.0
     ransac_threshold_px: float = 1.0
     border_px: int = 4
+    weak_quality_factor: float = 0.1
+    drought_min_tracks: int = 40
+    drought_max_s: float = 2.0
+    anchor_min_tracks: int = 80
 
 
 class _UndistortTable:
@@ -145,6 +163,10 @@ class KltFrontend:
         self._next_id = 0
         self.lost_tracks = 0
         self.rejected_tracks = 0
+        self.recovered_tracks = 0  # tracks brought back from the anchor after a drought
+        # The last well-tracked frame: image, stamp, points, ids, and R_Cnow_Canchor.
+        self._anchor: tuple[Image, int, npt.NDArray[np.float32], IntArray] | None = None
+        self._now_from_anchor: FloatArray | None = np.eye(3)
         self._lut = _UndistortTable(self.camera)
 
     @property
@@ -185,7 +207,10 @@ class KltFrontend:
         # (Pre-built pyramids would save the KLT's rebuilds, but OpenCV's Python binding
         # takes only images there.)
         if self._previous is not None and len(self._points):
-            self._track_from_previous(self._previous, grey, cam_rotation_now_from_prev)
+            self._points, self._ids = self._track_points(
+                self._previous, grey, self._points, self._ids, cam_rotation_now_from_prev
+            )
+        self._bridge_drought(int(stamp_ns), grey, cam_rotation_now_from_prev)
         self._replenish(grey)
         self._previous = grey
         pixels = self._points.astype(np.float64)
@@ -201,25 +226,61 @@ class KltFrontend:
 
     # ------------------------------------------------------------------------- internals
 
-    def _predict(self, rotation: FloatArray | None) -> npt.NDArray[np.float32]:
+    def _bridge_drought(self, stamp_ns: int, grey: Image, rotation: FloatArray | None) -> None:
+        """Bring back the anchor's tracks after a drought; keep the anchor current."""
+        o = self.options
+        anchor = self._anchor
+        if self._now_from_anchor is not None:
+            self._now_from_anchor = (
+                None if rotation is None else np.asarray(rotation) @ self._now_from_anchor
+            )
+        if (
+            anchor is not None
+            and len(self._points) < o.drought_min_tracks
+            and (stamp_ns - anchor[1]) * 1e-9 <= o.drought_max_s
+            and anchor[0] is not self._previous
+        ):
+            image, _, points, ids = anchor
+            missing = ~np.isin(ids, self._ids)
+            if missing.any():
+                back, back_ids = self._track_points(
+                    image, grey, points[missing], ids[missing], self._now_from_anchor
+                )
+                if len(back):
+                    self.recovered_tracks += len(back)
+                    self._points = np.vstack([self._points, back]).astype(np.float32)
+                    self._ids = np.concatenate([self._ids, back_ids])
+        if len(self._points) >= o.anchor_min_tracks:
+            self._anchor = (grey, stamp_ns, self._points.copy(), self._ids.copy())
+            self._now_from_anchor = np.eye(3)
+
+    def _predict(
+        self, points: npt.NDArray[np.float32], rotation: FloatArray | None
+    ) -> npt.NDArray[np.float32]:
         if rotation is None:
-            return self._points.copy()
-        xy = self._lut.normalised(self._points.astype(np.float64))
+            return points.copy()
+        xy = self._lut.normalised(points.astype(np.float64))
         rays = np.column_stack([xy, np.ones(len(xy))])
         predicted = self.camera.project(rays @ np.asarray(rotation).T)
         bad = ~np.all(np.isfinite(predicted), axis=1)
-        predicted[bad] = self._points[bad]
+        predicted[bad] = points[bad]
         return predicted.astype(np.float32)
 
-    def _track_from_previous(
-        self, previous: Image, current: Image, rotation: FloatArray | None
-    ) -> None:
-        """KLT from the previous image into the current one, both ways, then RANSAC."""
+    def _track_points(
+        self,
+        previous: Image,
+        current: Image,
+        points: npt.NDArray[np.float32],
+        ids: IntArray,
+        rotation: FloatArray | None,
+    ) -> tuple[npt.NDArray[np.float32], IntArray]:
+        """KLT of `points` from `previous` into `current`, both ways, then RANSAC;
+        returns the surviving points in `current` and their ids."""
         o = self.options
         window = (o.klt_window_px, o.klt_window_px)
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-        start = self._points.reshape(-1, 1, 2)
-        guess = self._predict(rotation).reshape(-1, 1, 2)
+        start = points.reshape(-1, 1, 2)
+        guess = self._predict(points, rotation).reshape(-1, 1, 2)
         forward, status, _ = cv2.calcOpticalFlowPyrLK(
             previous,
             current,
@@ -241,7 +302,7 @@ class KltFrontend:
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         forward = forward.reshape(-1, 2)
-        fb_error = np.linalg.norm(backward.reshape(-1, 2) - self._points, axis=1)
+        fb_error = np.linalg.norm(backward.reshape(-1, 2) - points, axis=1)
         h, w = current.shape[:2]
         b = o.border_px
         keep = (
@@ -254,13 +315,12 @@ class KltFrontend:
             & (forward[:, 1] <= h - 1 - b)
         )
         self.lost_tracks += int((~keep).sum())
-        previous = self._points[keep]
-        current = forward[keep]
-        ids = self._ids[keep]
-        inliers = self._epipolar_inliers(previous, current)
+        before = points[keep]
+        after = forward[keep]
+        kept_ids = ids[keep]
+        inliers = self._epipolar_inliers(before, after)
         self.rejected_tracks += int((~inliers).sum())
-        self._points = current[inliers].astype(np.float32)
-        self._ids = ids[inliers]
+        return after[inliers].astype(np.float32), kept_ids[inliers]
 
     def _epipolar_inliers(
         self, previous: npt.NDArray[np.float32], current: npt.NDArray[np.float32]
@@ -330,6 +390,19 @@ class KltFrontend:
                     minDistance=o.min_distance_px,
                     mask=mask[y0:y1, x0:x1],
                 )
+                found = 0 if corners is None else len(corners)
+                if found < want and o.weak_quality_factor < 1.0:
+                    # A flat cell: its strongest corner sets a low bar already; lower it
+                    # once more rather than leave the cell empty.
+                    weaker = cv2.goodFeaturesToTrack(
+                        grey[y0:y1, x0:x1],
+                        maxCorners=want,
+                        qualityLevel=o.quality_level * o.weak_quality_factor,
+                        minDistance=o.min_distance_px,
+                        mask=mask[y0:y1, x0:x1],
+                    )
+                    if weaker is not None and len(weaker) > found:
+                        corners = weaker
                 if corners is not None:
                     new_points.append(corners.reshape(-1, 2) + np.array([x0, y0], np.float32))
         if not new_points:

@@ -429,6 +429,7 @@ def run(
                 "frontend_width_px": frontend.image_size[0],
                 "lost_tracks": frontend.lost_tracks,
                 "rejected_tracks": frontend.rejected_tracks,
+                "recovered_tracks": frontend.recovered_tracks,
                 "options": asdict(options),
             },
         )

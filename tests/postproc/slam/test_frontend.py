@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -119,3 +120,64 @@ def test_undistort_table_matches_the_exact_model() -> None:
     # the exact solve is used.
     assert np.max(np.abs(looked_up - exact)) * camera.fx < 3e-3
     assert table.normalised(np.zeros((0, 2))).shape == (0, 2)
+
+
+def test_tracks_come_back_after_a_dark_drought(rendered) -> None:  # type: ignore[no-untyped-def]
+    stamps, world_from_cam, images, renderer = rendered
+    dark = np.full_like(images[0], 3)  # the light went out: nothing to track for 0.2 s
+
+    def run(options: FrontendOptions) -> tuple[list, KltFrontend]:  # type: ignore[type-arg]
+        frontend = KltFrontend(options, renderer.camera)
+        frames = []
+        for k, (stamp, image) in enumerate(zip(stamps[:14], images[:14], strict=True)):
+            R_now_prev = world_from_cam[k][:3, :3].T @ world_from_cam[k - 1][:3, :3] if k else None
+            frames.append(
+                frontend.track(
+                    int(stamp),
+                    dark if 8 <= k <= 10 else image,
+                    cam_rotation_now_from_prev=R_now_prev,
+                )
+            )
+        return frames, frontend
+
+    frames, frontend = run(FrontendOptions(width_px=480))
+    assert max(len(f.track_ids) for f in frames[8:11]) < 40  # the drought
+    ia, ib = track_ids_in_both(frames[7], frames[11])
+    assert len(ia) > 0.5 * len(frames[7].track_ids)
+    assert frontend.recovered_tracks >= len(ia)
+    # The tracks brought back land where the geometry says (as in the test above).
+    plane_y = renderer.texture.plane_y_m
+    T_C_W = np.linalg.inv(world_from_cam[11])
+    errors = []
+    for a, b in zip(ia, ib, strict=True):
+        X = _wall_point(world_from_cam[7], np.append(frames[7].xy_normalised[a], 1.0), plane_y)
+        p = T_C_W[:3, :3] @ X + T_C_W[:3, 3]
+        errors.append(
+            np.linalg.norm(p[:2] / p[2] - frames[11].xy_normalised[b]) * frontend.focal_px
+        )
+    assert np.median(errors) < 0.5
+    # Without the bridge every track after the drought is new.
+    frames, _ = run(FrontendOptions(width_px=480, drought_min_tracks=0))
+    ia, _ = track_ids_in_both(frames[7], frames[11])
+    assert len(ia) < 10
+
+
+def test_flat_cells_fill_from_weaker_corners() -> None:
+    # A faint texture everywhere and one bright dot per grid cell: the dot sets the
+    # cell's bar so high that the texture stays below it at the usual quality level.
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.standard_normal((270, 480)), (0, 0), 2.0)  # std 0.14
+    image = np.clip(120 + 40 * texture, 0, 255).astype(np.uint8)  # +-6 grey levels
+    for x in np.linspace(30, 450, 8).astype(int):
+        for y in np.linspace(27, 243, 5).astype(int):
+            cv2.circle(image, (int(x), int(y)), 2, 255, -1)
+    camera = default_camera().scaled(480 / default_camera().width)
+    counts = {}
+    for factor in (1.0, 0.1):
+        frontend = KltFrontend(
+            FrontendOptions(width_px=0, clahe=False, weak_quality_factor=factor), camera
+        )
+        counts[factor] = len(frontend.track(0, image).track_ids)
+    # Measured: 40 (the dots alone) and 400 (the budget, from the texture).
+    assert counts[1.0] < 100
+    assert counts[0.1] > 3 * counts[1.0]
