@@ -272,3 +272,12 @@ def test_cli_exports_and_reports_errors_in_one_line(run_folder: RunFixture, tmp_
     assert failed.returncode == 1
     assert failed.stderr.strip().count("\n") == 0
     assert "--easting-m" in failed.stderr
+
+
+def test_a_stage_folder_is_a_run_too(run_folder: RunFixture, tmp_path: Path) -> None:
+    """`export SFM_DIR` finds sparse/0 and images/ inside it."""
+    import pycolmap
+
+    written = run(ExportOptions(formats=("colmap-text",)), run_folder.root / "sfm", tmp_path)
+    rec = pycolmap.Reconstruction(str(written["colmap-text"] / "sparse" / "0"))
+    assert rec.num_reg_images() == 6

@@ -129,3 +129,21 @@ def test_unknown_target_and_too_fine_a_grid_are_refused(
         run(options, run_folder.root, tmp_path / "out")
     with pytest.raises(InputError, match="choose a coarser resolution"):
         raster_grid(np.array([[0.0, 0.0], [500.0, 500.0]]), 0.01)
+
+
+def test_without_a_heading_world_x_is_taken_as_east(run_folder: RunFixture, tmp_path: Path) -> None:
+    georef = Georeference(target="grid_a", easting_m=400_000.0, northing_m=5_000_000.0, epsg=32630)
+    options = ExportOptions(
+        formats=("ortho",), ortho=OrthoOptions(resolution_m=0.02, georeference=georef)
+    )
+    run(options, run_folder.root, tmp_path / "out")
+    dem, scale, tie, _ = read_geotiff(tmp_path / "out" / "ortho" / "dem.tif")
+    # The plank's west half at world (-0.5, 0.0): a pure shift onto the map.
+    e, n = 400_000.0 + (-0.5 - TARGET_M[0]), 5_000_000.0 + (0.0 - TARGET_M[1])
+    r, c = cell(scale, tie, e, n)
+    assert dem[r, c] == pytest.approx(BOX_TOP_Z, abs=1e-5)
+    _, cols = np.nonzero(np.abs(dem - BOX_TOP_Z) < 1e-4)
+    assert (cols.max() - cols.min() + 1) * scale[0] == pytest.approx(2.0, rel=0.01)
+    summary = json.loads((tmp_path / "out" / "ortho" / "ortho.json").read_text())
+    assert summary["heading_assumed"] is True
+    assert summary["frame"] == "EPSG:32630"
