@@ -76,7 +76,8 @@ def reference_rows(cameras: list[ExportCamera], options: ReferenceOptions) -> li
     rows = []
     for camera in cameras:
         pose = camera.world_from_cam
-        omega, phi, kappa = opk_deg(pose)
+        # Rounded to the printed precision first so that no "-0.00000" is written.
+        omega, phi, kappa = (round(a, 5) + 0.0 for a in opk_deg(pose))
         accuracy = pose_accuracy(camera)
         sigmas: tuple[float, ...]
         if accuracy is None:
