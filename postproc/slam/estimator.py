@@ -53,6 +53,10 @@ class EstimatorOptions:
         Delta-v / (g T), 4 degrees there, and the smoother takes it out. Simulated
         dives (bench_slam, 30 s): feature-level ATE 0.8 / 2.7 / 9.6 mm with 1 s, 0.8 /
         2.4 / 9.5 mm with 10 s; rendered 3.7 mm vs 4.1 mm (max error 10.2 vs 8.6 mm).
+    gravity_tolerance_m_s2: a start whose mean specific force differs from gravity by
+        more than this is refused and retried at the next keyframe (an accelerometer
+        still waking up, or one logging in g): over the gravity window a moving body's
+        mean departs from g by its change of velocity over the window, well under this.
     init_min_keyframes: keyframes buffered before the visual-inertial alignment is tried.
     init_min_parallax_deg: median ray angle to the first keyframe needed to try it.
     init_min_condition: smallest accepted conditioning of the alignment (scale observable).
@@ -88,6 +92,7 @@ class EstimatorOptions:
     backend: BackendOptions = field(default_factory=BackendOptions)
     loop_closure: LoopClosureOptions = field(default_factory=LoopClosureOptions)
     gravity_window_s: float = 10.0
+    gravity_tolerance_m_s2: float = 3.0
     still_max_flow_px: float = 1.5
     timeshift_cam_imu_s: float = 0.0
     init_min_keyframes: int = 4
@@ -395,6 +400,7 @@ class SlamEstimator:
                 found = None
         if found is not None:
             rest, rest_end_ns = found
+            self._check_gravity(rest.accel_mean_m_s2)
             # At rest the accelerometer reads gravity plus its bias: the bias along
             # gravity is the norm's excess (a RealSense reads 10.1 m/s^2).
             up_body = rest.accel_mean_m_s2 / np.linalg.norm(rest.accel_mean_m_s2)
@@ -430,6 +436,7 @@ class SlamEstimator:
             )
         else:
             accel = mean_specific_force(self.imu, first.imu_ns, o.gravity_window_s)
+            self._check_gravity(accel)
             R_S_B0 = session_from_body_rotation(accel)
             alignment = None
             if len(self._buffer) >= o.init_min_keyframes and not all(
@@ -457,6 +464,16 @@ class SlamEstimator:
                 accel_bias_m_s2=bias,
             )
         return True
+
+    def _check_gravity(self, accel_m_s2: FloatArray) -> None:
+        """StageError unless a mean specific force (m/s^2) can be gravity (see options)."""
+        norm = float(np.linalg.norm(accel_m_s2))
+        g = self.options.backend.gravity_m_s2
+        if not abs(norm - g) <= self.options.gravity_tolerance_m_s2:
+            raise StageError(
+                f"cannot find gravity: mean specific force {norm:.2f} m/s^2 (expected "
+                f"{g:.2f} +- {self.options.gravity_tolerance_m_s2:g})"
+            )
 
     def _last_rest(self, first_ns: int) -> tuple[ImuStillness, int] | None:
         """The latest still IMU window ending within `rest_lookback_s` before `first_ns`
