@@ -58,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 def _export(args: argparse.Namespace) -> int:
     from postproc.export.ortho import Georeference
-    from postproc.export.stage import ExportOptions, OrthoOptions, run
+    from postproc.export.stage import ExportOptions, OrthoOptions, export_formats
     from shared.errors import InputError
 
     georef = None
@@ -79,7 +79,7 @@ def _export(args: argparse.Namespace) -> int:
         ortho=OrthoOptions(resolution_m=args.resolution_m, georeference=georef),
     )
     out = args.out if args.out is not None else args.run_dir / "export"
-    written = run(options, args.run_dir, out, overwrite=args.overwrite)
+    written = export_formats(options, args.run_dir, out, overwrite=args.overwrite)
     for name, path in written.items():
         print(f"{name}: {path}")
     return 0

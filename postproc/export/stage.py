@@ -237,7 +237,13 @@ FORMATS: dict[str, tuple[Writer, str]] = {
 }
 
 
-def run(
+def run(options: ExportOptions, run_dir: Path, out_dir: Path, *, overwrite: bool = False) -> Path:
+    """The stage entry point: `export_formats` into `out_dir`; returns `out_dir`."""
+    export_formats(options, run_dir, out_dir, overwrite=overwrite)
+    return Path(out_dir)
+
+
+def export_formats(
     options: ExportOptions, run_dir: Path, out_dir: Path, *, overwrite: bool = False
 ) -> dict[str, Path]:
     """Write every format of `options.formats` from the run in `run_dir` into `out_dir`;

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from postproc.export.stage import ExportOptions, run
+from postproc.export.stage import ExportOptions, export_formats, run
 from shared.errors import InputError, OutputExistsError
 
 from .conftest import HEIGHT, PARAMS, WIDTH, RunFixture, build_run
@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[3]
 def exported(run_folder: RunFixture, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("export") / "export"
     formats = ("glb", "gltf", "las", "laz", "colmap-text", "nerfstudio", "camera-csv")
-    written = run(ExportOptions(formats=formats), run_folder.root, out)
+    written = export_formats(ExportOptions(formats=formats), run_folder.root, out)
     assert set(written) == set(formats)
     return out
 
@@ -278,6 +278,6 @@ def test_a_stage_folder_is_a_run_too(run_folder: RunFixture, tmp_path: Path) -> 
     """`export SFM_DIR` finds sparse/0 and images/ inside it."""
     import pycolmap
 
-    written = run(ExportOptions(formats=("colmap-text",)), run_folder.root / "sfm", tmp_path)
-    rec = pycolmap.Reconstruction(str(written["colmap-text"] / "sparse" / "0"))
+    out = run(ExportOptions(formats=("colmap-text",)), run_folder.root / "sfm", tmp_path / "x")
+    rec = pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0"))
     assert rec.num_reg_images() == 6
