@@ -36,8 +36,9 @@ FloatArray = npt.NDArray[np.float64]
 
 # Candidate (triangle, cell) pairs tested per vectorised pass (~100 bytes each).
 _CHUNK_CANDIDATES = 1 << 20
-# The largest raster accepted (cells); a finer resolution is refused with a hint.
-MAX_CELLS = 150_000_000
+# The largest raster accepted (cells: 60 x 100 m at 1 cm; about 20 bytes a cell while
+# drawing); a finer resolution is refused with a hint.
+MAX_CELLS = 60_000_000
 # GeoTIFF tag and key numbers (GeoTIFF 1.1 / OGC 19-008).
 TAG_PIXEL_SCALE, TAG_TIEPOINT, TAG_GEOKEYS, TAG_GEOASCII, TAG_GDAL_NODATA = (
     33550, 33922, 34735, 34737, 42113,
@@ -105,7 +106,7 @@ def rasterise_top_down(
     v = (grid.y0_m - V[:, 1]) / grid.resolution_m - 0.5
     height, width = grid.height, grid.width
     best = np.full(height * width, -np.inf)
-    rgb = np.zeros((height * width, 3))
+    rgb = np.zeros((height * width, 3), np.float32)
     tu, tv = u[F], v[F]
     area = (tu[:, 1] - tu[:, 0]) * (tv[:, 2] - tv[:, 0]) - (tu[:, 2] - tu[:, 0]) * (
         tv[:, 1] - tv[:, 0]
