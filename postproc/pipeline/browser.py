@@ -237,3 +237,52 @@ class HeadlessChromium:
             params["clip"] = {"x": x, "y": y, "width": w, "height": h, "scale": 1}
         data = self.send("Page.captureScreenshot", params, session=True)["data"]
         return base64.b64decode(data)
+
+
+def screenshot_element(
+    url: str,
+    out_png: Path,
+    *,
+    element_id: str = "wm-viewer",
+    ready: str = "window.wreckmapViewer && window.wreckmapViewer.ready",
+    width_px: int = 1280,
+    height_px: int = 900,
+    timeout_s: float = 120.0,
+) -> Path:
+    """Open `url`, wait for `ready`, write the element's screenshot to `out_png`."""
+    with HeadlessChromium(width_px=width_px, height_px=height_px) as browser:
+        browser.open(url)
+        browser.wait_for(ready, timeout_s=timeout_s)
+        rect = browser.evaluate(
+            f"(() => {{ const r = document.getElementById({json.dumps(element_id)})"
+            ".getBoundingClientRect(); return [r.x, r.y, r.width, r.height]; })()"
+        )
+        png = browser.screenshot(clip=(rect[0], rect[1], rect[2], rect[3]))
+    out_png.write_bytes(png)
+    return out_png
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m postproc.pipeline.browser REPORT.html[#hash] --out PNG`: a screenshot
+    of the report's viewer (how the README's figure was taken)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("page", help="report.html (a path, optionally with #hash) or a URL")
+    parser.add_argument("--out", type=Path, required=True, help="PNG to write")
+    parser.add_argument("--element", default="wm-viewer", help="element id to capture")
+    parser.add_argument("--width", type=int, default=1280, help="window width, px")
+    parser.add_argument("--height", type=int, default=900, help="window height, px")
+    args = parser.parse_args(argv)
+    page = args.page
+    if "://" not in page:
+        path, _, fragment = page.partition("#")
+        page = Path(path).resolve().as_uri() + (f"#{fragment}" if fragment else "")
+    screenshot_element(page, args.out, element_id=args.element, width_px=args.width,
+                       height_px=args.height)  # fmt: skip
+    print(args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

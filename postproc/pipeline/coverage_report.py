@@ -177,7 +177,9 @@ def coverage_png(coverage: RunCoverage, label: str) -> bytes:
     from matplotlib.colors import ListedColormap
 
     maps = coverage.maps[label]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [1.2, 1, 1]})
+    fig, axes = plt.subplots(
+        1, 3, figsize=(16, 5.0), gridspec_kw={"width_ratios": [1.2, 1, 1]}, layout="constrained"
+    )
     image = None
     for ax, view in zip(axes, VIEWS, strict=True):
         cmap = maps[view]

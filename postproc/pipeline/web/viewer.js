@@ -4,7 +4,7 @@
 // precision on the GPU); every number shown is in W.
 //
 // URL hash options (also what the tests use): #hide=mesh,points,targets,keyframes,
-// session:NAME (layers off at load), view=top|side|oblique.
+// session:NAME (layers off at load), view=top|side|oblique, zoom=F (closer by F).
 // window.wreckmapViewer exposes ready, frames, toScreen(worldXYZ) and lastMeasure_m.
 (function () {
   "use strict";
@@ -38,6 +38,18 @@
     }
     return p;
   }
+  // PLY colours are sRGB bytes; three.js lights and blends in linear RGB.
+  const srgbToLinear = new Float32Array(256);
+  for (let i = 0; i < 256; i++) {
+    const c = i / 255;
+    srgbToLinear[i] = c <= 0.04045 ? c / 12.92 : Math.pow((c + 0.055) / 1.055, 2.4);
+  }
+  function colours(b64) {
+    const c = bytes(b64);
+    const out = new Float32Array(c.length);
+    for (let i = 0; i < c.length; i++) out[i] = srgbToLinear[c[i]];
+    return new THREE.BufferAttribute(out, 3);
+  }
   function local(xyz) {
     return new THREE.Vector3(xyz[0], xyz[1], xyz[2]).sub(origin);
   }
@@ -55,8 +67,8 @@
   const scene = new THREE.Scene();
   const camera = new THREE.PerspectiveCamera(45, 1, 0.01, 1000);
   camera.up.set(0, 0, 1);
-  scene.add(new THREE.HemisphereLight(0xffffff, 0x445566, 1.6));
-  const sun = new THREE.DirectionalLight(0xffffff, 1.4);
+  scene.add(new THREE.HemisphereLight(0xffffff, 0x303840, 1.0));
+  const sun = new THREE.DirectionalLight(0xffffff, 2.0);
   sun.position.set(0.3, -0.4, 1.0);
   scene.add(sun);
 
@@ -75,7 +87,7 @@
     const geometry = new THREE.BufferGeometry();
     geometry.setAttribute("position", new THREE.BufferAttribute(positions(m.positions), 3));
     if (m.colours) {
-      geometry.setAttribute("color", new THREE.BufferAttribute(bytes(m.colours), 3, true));
+      geometry.setAttribute("color", colours(m.colours));
     }
     geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(bytes(m.faces).buffer), 1));
     geometry.computeVertexNormals();
@@ -98,7 +110,7 @@
     const geometry = new THREE.BufferGeometry();
     geometry.setAttribute("position", new THREE.BufferAttribute(positions(pts.positions), 3));
     if (pts.colours) {
-      geometry.setAttribute("color", new THREE.BufferAttribute(bytes(pts.colours), 3, true));
+      geometry.setAttribute("color", colours(pts.colours));
     }
     geometry.computeBoundingBox();
     // Framing follows the mesh when there is one (fused points carry far outliers).
@@ -135,7 +147,7 @@
   const radius = Math.max(size.length() / 2, 0.5);
   const centre = bounds.getCenter(new THREE.Vector3());
   // Glyph size for cameras and markers: a small fraction of the scene.
-  const glyph = Math.max(radius / 40, 0.02);
+  const glyph = Math.max(radius / 90, 0.01);
 
   for (const s of sceneDoc.sessions) {
     const colour = new THREE.Color(s.colour);
@@ -301,7 +313,8 @@
   controls.enableDamping = false;
   controls.screenSpacePanning = true;
   function setView(view) {
-    const d = radius * 1.8;
+    const zoom = Math.max(Number(hash.get("zoom")) || 1, 0.05);
+    const d = (radius * 1.8) / zoom;
     const dirs = { top: [0, -1e-3, 1], side: [0, -1, 0.08], oblique: [0.7, -1.0, 0.8] };
     const dir = new THREE.Vector3(...(dirs[view] || dirs.oblique)).normalize();
     camera.position.copy(centre).addScaledVector(dir, d);
