@@ -1,4 +1,4 @@
-"""`wreckmap-post`: the lab batch (slam, depth, merge, sfm, dense, run)."""
+"""`wreckmap-post`: the lab batch (slam, depth, merge, sfm, dense, run, export)."""
 
 from __future__ import annotations
 
