@@ -15,6 +15,7 @@ from what the folder holds (a registry, not an if-chain at the call site).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ from shared.calibration.kalibr import CameraCalibration, ImuNoise, read_camchain
 from shared.errors import InputError
 
 Image = npt.NDArray[np.uint8]
+LOG = logging.getLogger(__name__)
 
 
 @dataclass
@@ -92,10 +94,16 @@ class EurocInput:
         from shared.formats.euroc import read_euroc
 
         self.folder = folder
-        self._data = read_euroc(folder)
+        try:
+            self._data = read_euroc(folder)
+        except InputError as error:
+            # read_euroc refuses an IMU file whose stamps repeat or go back, and rows
+            # that are not numbers; a real recorder writes such rows. Read it row by row.
+            if "imu0" not in str(error):
+                raise
+            self._data = _read_euroc_keeping_odd_imu_rows(folder)
         if len(self._data.imu_stamps_ns) < 2:
             raise InputError(f"{folder}: fewer than 2 IMU samples in mav0/imu0/data.csv")
-        # read_euroc already refuses rows out of order; this merges what it lets through.
         self._imu, self.imu_cleaning = clean_imu_rows(
             self._data.imu_stamps_ns,
             self._data.gyro_rad_s,
@@ -138,6 +146,70 @@ class EurocInput:
                 raise InputError(f"{path}: not a readable image (expected PNG or JPEG)")
             png = encoded if path.suffix.lower() == ".png" else None
             yield Frame(int(stamp), image, png)
+
+
+def _read_euroc_keeping_odd_imu_rows(folder: Path) -> Any:
+    """An EurocDataset whose imu0 rows are taken in file order as they are (repeated or
+    backward stamps left to `clean_imu_rows`); a row that is not 7 numbers is skipped
+    with a warning naming its line. No ground truth (SLAM does not read it)."""
+    # shared.formats.euroc has the cam0 and sensor.yaml readers; its read_euroc is strict.
+    from shared.formats.euroc import (
+        EurocDataset,
+        _read_camera_csv,
+        _read_camera_yaml,
+        _read_imu_yaml,
+    )
+
+    mav = folder / "mav0" if (folder / "mav0").is_dir() else folder
+    stamps, paths = _read_camera_csv(mav / "cam0" / "data.csv")
+    body_from_imu, noise = np.eye(4), None
+    if (mav / "imu0" / "sensor.yaml").is_file():
+        body_from_imu, noise = _read_imu_yaml(mav / "imu0" / "sensor.yaml")
+    camera = None
+    if (mav / "cam0" / "sensor.yaml").is_file():
+        camera = _read_camera_yaml(mav / "cam0" / "sensor.yaml", body_from_imu)
+    csv_path = mav / "imu0" / "data.csv"
+    try:
+        lines = csv_path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError as error:
+        raise InputError(f"{csv_path}: cannot read ({error})") from None
+    imu_stamps: list[int] = []
+    rows: list[list[float]] = []
+    skipped: list[int] = []
+    for number, line in enumerate(lines, start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = [f.strip() for f in text.split(",")]
+        try:
+            stamp = int(fields[0])
+            values = [float(f) for f in fields[1:7]]
+        except (ValueError, IndexError):
+            skipped.append(number)
+            continue
+        if len(values) != 6 or not np.all(np.isfinite(values)):
+            skipped.append(number)
+            continue
+        imu_stamps.append(stamp)
+        rows.append(values)
+    if skipped:
+        LOG.warning(
+            "%s: skipped %d rows that are not a stamp and 6 numbers (lines %s)",
+            csv_path,
+            len(skipped),
+            ", ".join(str(n) for n in skipped[:5]) + (", ..." if len(skipped) > 5 else ""),
+        )
+    values_array = np.array(rows, dtype=np.float64).reshape(-1, 6)
+    return EurocDataset(
+        image_stamps_ns=stamps,
+        image_paths=paths,
+        imu_stamps_ns=np.array(imu_stamps, dtype=np.int64),
+        gyro_rad_s=values_array[:, :3].copy(),
+        accel_m_s2=values_array[:, 3:].copy(),
+        groundtruth=None,
+        camera=camera,
+        imu_noise=noise,
+    )
 
 
 class EurocCameraInput(EurocInput):

@@ -12,7 +12,7 @@ import pytest
 
 from postproc.slam.frontend import FrontendOptions
 from postproc.slam.imu_stream import clean_imu_rows
-from postproc.slam.inputs import SessionInput
+from postproc.slam.inputs import SessionInput, open_input
 from postproc.slam.stage import SlamOptions, run
 from shared.archive import ArchiveWriter, CompressedImage, Imu
 from shared.calibration.kalibr import write_camchain, write_imu_yaml
@@ -147,3 +147,26 @@ def test_an_imu_that_starts_late_and_ends_early_uses_the_frames_it_covers(
     assert trajectory.stamps_ns[0] >= source.imu.stamps_ns[0]
     assert trajectory.stamps_ns[-1] <= source.imu.stamps_ns[-1]
     shutil.rmtree(session)
+
+
+def test_euroc_imu_rows_out_of_order_repeated_or_unreadable(
+    wall_euroc: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    folder = tmp_path / "euroc"
+    shutil.copytree(wall_euroc, folder)
+    csv = folder / "mav0" / "imu0" / "data.csv"
+    lines = csv.read_text().splitlines()
+    header, rows = lines[0], lines[1:]
+    stamp_100 = rows[100].split(",")[0]
+    odd = [rows[99], rows[50], "1234,not,a,number", f"{stamp_100},nan,0,0,0,0,9.8"]
+    edited = [*rows[:100], *odd, *rows[100:]]
+    csv.write_text("\n".join([header, *edited]) + "\n")
+    with caplog.at_level(logging.WARNING):
+        source = open_input(folder)
+    # Row 99 written twice, row 50 sent again; the words and the NaN are skipped.
+    assert source.imu_cleaning.duplicate_rows == 1
+    assert source.imu_cleaning.out_of_order_rows == 1
+    assert "skipped 2 rows" in caplog.text and "1 out-of-order rows dropped" in caplog.text
+    reference = open_input(wall_euroc)
+    np.testing.assert_array_equal(source.imu.stamps_ns, reference.imu.stamps_ns)
+    np.testing.assert_allclose(source.imu.gyro_rad_s, reference.imu.gyro_rad_s)
