@@ -15,7 +15,7 @@ import pytest
 from postproc.export.stage import ExportOptions, export_formats, run
 from shared.errors import InputError, OutputExistsError
 
-from .conftest import HEIGHT, PARAMS, WIDTH, RunFixture, build_run
+from .conftest import HEIGHT, PARAMS, SEABED_Z, WIDTH, RunFixture, build_run
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -29,49 +29,73 @@ def exported(run_folder: RunFixture, tmp_path_factory: pytest.TempPathFactory) -
     return out
 
 
-def _gltf_arrays(gltf: object, blob: bytes) -> dict[str, np.ndarray]:
-    """POSITION, COLOR_0 and indices of the first primitive, decoded with numpy from the
-    accessors pygltflib parsed (component types and counts as the glTF 2.0 spec says)."""
-    types = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+def _gltf_json_and_buffer(path: Path) -> tuple[dict, bytes]:
+    """The JSON document and the buffer of a .glb or .gltf, read as the glTF 2.0 spec
+    lays them out (GLB: 12-byte header, then JSON and BIN chunks)."""
+    data = path.read_bytes()
+    if path.suffix == ".gltf":
+        document = json.loads(data)
+        return document, (path.parent / document["buffers"][0]["uri"]).read_bytes()
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    assert (magic, version, length) == (b"glTF", 2, len(data))
+    json_length, json_type = struct.unpack_from("<II", data, 12)
+    assert json_type == 0x4E4F534A  # "JSON"
+    document = json.loads(data[20 : 20 + json_length])
+    bin_length, bin_type = struct.unpack_from("<II", data, 20 + json_length)
+    assert bin_type == 0x004E4942  # "BIN"
+    start = 28 + json_length
+    return document, data[start : start + bin_length]
+
+
+def _accessor(document: dict, blob: bytes, index: int) -> np.ndarray:
+    """An accessor's values as floats (normalised integers divided by their maximum)."""
+    types = {5121: "u1", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
     sizes = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
-    primitive = gltf.meshes[0].primitives[0]  # type: ignore[attr-defined]
-
-    def read(index: int) -> np.ndarray:
-        accessor = gltf.accessors[index]  # type: ignore[attr-defined]
-        view = gltf.bufferViews[accessor.bufferView]  # type: ignore[attr-defined]
-        start = (view.byteOffset or 0) + (accessor.byteOffset or 0)
-        dtype = np.dtype(types[accessor.componentType])
-        n = accessor.count * sizes[accessor.type]
-        values = np.frombuffer(blob, dtype, count=n, offset=start)
-        return values.reshape(accessor.count, sizes[accessor.type])
-
-    return {
-        "position": read(primitive.attributes.POSITION),
-        "color": read(primitive.attributes.COLOR_0),
-        "indices": read(primitive.indices).reshape(-1, 3),
-    }
+    accessor = document["accessors"][index]
+    view = document["bufferViews"][accessor["bufferView"]]
+    dtype = np.dtype(types[accessor["componentType"]])
+    n = accessor["count"] * sizes[accessor["type"]]
+    start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    values = np.frombuffer(blob, dtype, count=n, offset=start).reshape(accessor["count"], -1)
+    if accessor.get("normalized"):
+        return values / np.iinfo(dtype).max
+    return values.astype(float)
 
 
 @pytest.mark.parametrize("name", ["mesh.glb", "mesh.gltf"])
 def test_gltf_holds_the_full_mesh_upright_with_colours(
     exported: Path, run_folder: RunFixture, name: str
 ) -> None:
-    import pygltflib
+    import trimesh
 
-    gltf = pygltflib.GLTF2().load(str(exported / name))
-    if name.endswith(".glb"):
-        blob = gltf.binary_blob()
-    else:
-        assert gltf.buffers[0].uri == "mesh.bin"
-        blob = (exported / "mesh.bin").read_bytes()
-    arrays = _gltf_arrays(gltf, blob)
     mesh = run_folder.mesh
-    # glTF y is up: world (x, y, z) is stored as (x, z, -y).
-    back = arrays["position"].astype(float)
+    # trimesh's loader: the geometry, glTF's y up (world (x, y, z) stored as (x, z, -y)).
+    scene = trimesh.load(exported / name, process=False)
+    (loaded,) = scene.geometry.values()
+    back = np.asarray(loaded.vertices)
     world = np.column_stack((back[:, 0], -back[:, 2], back[:, 1]))
     np.testing.assert_allclose(world, mesh.vertices, atol=2e-6)
-    np.testing.assert_array_equal(arrays["indices"], mesh.faces)
-    np.testing.assert_array_equal(arrays["color"][:, :3], mesh.colors)
+    np.testing.assert_array_equal(np.asarray(loaded.faces), mesh.faces)
+    # The colours by hand: COLOR_0 is linear RGB (the spec), ours are sRGB.
+    document, blob = _gltf_json_and_buffer(exported / name)
+    primitive = document["meshes"][0]["primitives"][0]
+    linear = _accessor(document, blob, primitive["attributes"]["COLOR_0"])
+    np.testing.assert_array_equal(linear[:, 3], 1.0)
+    linear = linear[:, :3]
+    srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(srgb * 255, mesh.colors, atol=0.05)
+    # The spec's alignment rule: vertex attribute elements on 4-byte boundaries.
+    sizes = {5121: 1, 5123: 2, 5125: 4, 5126: 4}
+    for index in primitive["attributes"].values():
+        accessor = document["accessors"][index]
+        view = document["bufferViews"][accessor["bufferView"]]
+        element = sizes[accessor["componentType"]] * int(accessor["type"][-1])
+        assert view.get("byteOffset", 0) % 4 == 0 and element % 4 == 0
+    normals = _accessor(document, blob, primitive["attributes"]["NORMAL"])
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    # The flat seabed's normals point up (glTF +y).
+    seabed = np.isclose(mesh.vertices[:, 2], SEABED_Z) & (np.abs(mesh.vertices[:, 0]) > 1.5)
+    np.testing.assert_allclose(normals[seabed, 1], 1.0, atol=1e-6)
 
 
 @pytest.mark.parametrize("name", ["points.las", "points.laz"])
