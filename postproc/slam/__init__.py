@@ -7,8 +7,8 @@ Modules, from pixels to the result folder:
   table lookup -> `FrameTracks`.
 - `keyframes`: the OKVIS/SVIn2 overlap / match-ratio rule with interval bounds.
 - `initialization`: gravity from the rotation-compensated accelerometer mean,
-  linear visual-inertial alignment (velocity, accelerometer bias, scale),
-  zero-velocity detection.
+  rest from the IMU's spread, linear visual-inertial alignment (velocity,
+  accelerometer bias, scale), zero-velocity detection.
 - `backend`: GTSAM ISAM2 smoother with CombinedImuFactor between keyframes and
   Huber projection factors to triangulated landmarks, over a sliding window of
   keyframes (older ones retired and frozen, so memory stays flat on long dives),
@@ -17,7 +17,9 @@ Modules, from pixels to the result folder:
   between-factors in the same graph.
 - `estimator`: ties the above together frame by frame (pure computation).
 - `visual_only`: the IMU-free baseline (`--no-imu`).
-- `inputs`: EuRoC and session-folder readers behind one Protocol.
+- `inputs`: EuRoC (also camera-only) and session-folder readers behind one Protocol.
+- `imu_stream`: real IMU rows (repeated or backward stamps, gyro and accelerometer
+  merged from separate sensors) into one strictly increasing stream.
 - `stage`: `SlamOptions` and `run(options, input_path, out_dir)` writing the
   SLAM result folder of docs/conventions.md.
 - `synthetic`: feature-level and rendered-wall simulation for tests and benchmarks.

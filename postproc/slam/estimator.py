@@ -7,6 +7,18 @@ frame-rate body trajectory and the landmarks, all in the session frame S.
 Clocks: frame stamps are on the camera clock; the IMU and the backend run on
 the IMU clock, t_imu = t_cam + timeshift_cam_imu_s (Kalibr). Results carry the
 camera-clock stamps of the images they belong to.
+
+Start-up never stops the run: at rest (the IMU still around the first keyframe
+and the images agreeing) the backend starts at once from the still IMU; a rest
+that ended shortly before the first image is carried to it by the IMU; in
+motion the buffered keyframes wait for the visual-inertial alignment (or, after
+`init_max_s`, start from rest with a loose velocity prior). A start that fails
+(no gravity in the accelerometer, a smoother that cannot take it) drops that
+keyframe and is retried at the next. Should the smoother fail for good later
+on, the keyframes so far become a finished map segment and a new segment starts
+at the failing keyframe from the IMU prediction of the last state, so the
+trajectory stays whole (`stats["map_segments"]`; loops are closed within a
+segment, not yet across segments).
 """
 
 from __future__ import annotations

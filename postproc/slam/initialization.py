@@ -1,4 +1,4 @@
-"""Start-up of the visual-inertial estimate: gravity direction, stillness tests.
+"""Start-up of the visual-inertial estimate: gravity direction, stillness tests, alignment.
 
 Pure math, no I/O. Divers move slowly and often hover, so the estimator does
 not wait for a motion-rich start (which may never come): the first keyframe
@@ -6,7 +6,9 @@ is placed from gravity alone (roll and pitch from the mean specific force over
 the first ~second, yaw zero), velocity gets a loose prior around zero, and
 landmarks join the graph only once they are seen with enough parallax. While
 the camera hardly moves, a zero-velocity constraint holds the state instead of
-letting the IMU drift (no reset loop).
+letting the IMU drift (no reset loop). `imu_stillness` tells from the IMU's
+spread whether the body rests (then gravity, the gyro bias and zero velocity
+come from the still IMU; see estimator).
 
 Session frame S (documented in postproc/slam/stage.py): z up, origin at the
 body (IMU) position of the first keyframe, yaw such that the first

@@ -10,7 +10,10 @@ keyframes, estimates the visual-inertial trajectory (backend) and writes:
     map.ply             sparse landmarks in S (binary little-endian PLY, float32 xyz)
     stats.json          frames, keyframes, run time, real-time factor (wall clock, and
                         per CPU second with the load average beside it), loop closures,
-                        tracking failures, sliding-window and estimator counters
+                        tracking failures, sliding-window and estimator counters, the
+                        start ("init*"), map segments, the images the IMU covers
+                        ("frames_before_imu", "frames_after_imu") and the IMU rows
+                        merged, dropped or interpolated ("imu_*")
 
 The session frame S: z up (gravity (0, 0, -9.81)), origin at the body (IMU)
 position of the first keyframe, yaw such that the first keyframe's body x
