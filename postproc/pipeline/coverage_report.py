@@ -57,7 +57,8 @@ VIEW_TITLES = {
 @dataclass(kw_only=True)
 class RunCoverage:
     """The maps of one run: per label (a session's name, or "merged") the maps of the
-    three views; the targets (name -> `T_W_m`); what was left out and why."""
+    three views; the targets (name -> `T_W_m`); what was left out and why; the surface
+    samples and their score from all sessions (for the viewer's coverage colouring)."""
 
     maps: dict[str, dict[str, CoverageMap]] = field(default_factory=dict)
     keyframes: dict[str, int] = field(default_factory=dict)
@@ -65,6 +66,8 @@ class RunCoverage:
     notes: list[str] = field(default_factory=list)
     surface_source: str = ""
     options: CoverageOptions = field(default_factory=CoverageOptions)
+    surface: SurfaceSamples | None = None
+    merged_score: np.ndarray | None = None
 
 
 def _surface(out: Path) -> tuple[SurfaceSamples, tuple[Any, Any] | None, str] | None:
@@ -133,6 +136,8 @@ def compute_run_coverage(
     seen_by = {s.name: sightings(surface, s, options, occluder=occluder) for s in sessions}
     for label, group in groups:
         seen = aggregate(len(surface.points_m), [seen_by[s.name] for s in group], options)
+        if label == "merged":
+            result.surface, result.merged_score = surface, seen.score
         result.maps[label] = {
             view: coverage_map(surface, seen.score, seen.views, view, options, cell_m=cell)
             for view in VIEWS
@@ -271,15 +276,20 @@ def _well_seen(cmap: CoverageMap, options: CoverageOptions) -> float:
     return round(good / total, 4) if total else 0.0
 
 
-def coverage_html(out: Path, session_names: list[str]) -> str:
-    """The report's coverage section: maps per session and merged, the largest gaps."""
-    from postproc.pipeline.report import png_data_uri
-
+def safe_run_coverage(out: Path, session_names: list[str]) -> RunCoverage:
+    """`compute_run_coverage`, or an empty result whose note says why it failed."""
     try:
-        coverage = compute_run_coverage(out, session_names)
+        return compute_run_coverage(out, session_names)
     except Exception as error:  # a report shows what it can
         log.warning("coverage failed: %s", error)
-        return f"<p class='missing'>coverage failed: {html.escape(str(error))}</p>"
+        return RunCoverage(notes=[f"coverage failed: {type(error).__name__}: {error}"])
+
+
+def coverage_html(out: Path, coverage: RunCoverage) -> str:
+    """The report's coverage section: maps per session and merged, the largest gaps
+    (also writes `coverage/` in the run folder)."""
+    from postproc.pipeline.report import png_data_uri
+
     if not coverage.maps:
         return (
             "<p class='missing'>not available: " + html.escape("; ".join(coverage.notes)) + "</p>"

@@ -269,18 +269,19 @@ def build_report(
     """The report page of `project` as one HTML string (no external references)."""
     out = project.output
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
-    from postproc.pipeline.coverage_report import coverage_html
+    from postproc.pipeline.coverage_report import coverage_html, safe_run_coverage
     from postproc.pipeline.viewer import load_scene, viewer_html
 
     names = [session.name for session in project.sessions]
+    coverage = safe_run_coverage(out, names)
     body = [
         f"<h1>{html.escape(project.name)}</h1>",
         f"<p class='small'>project {html.escape(str(project.path))}; "
         f"output {html.escape(str(out))}; {now}</p>",
         "<h2>Model</h2>",
-        viewer_html(load_scene(out, names)),
+        viewer_html(load_scene(out, names, coverage=coverage)),
         "<h2>Coverage for the next dive</h2>",
-        coverage_html(out, names),
+        coverage_html(out, coverage),
         "<h2>Stage runs</h2>",
         _status_rows(project, result),
     ]

@@ -79,6 +79,7 @@ class ViewerScene:
     mesh_full_triangles: int = 0
     mesh_cell_m: float = 0.0
     mesh_file: str = ""
+    mesh_coverage: npt.NDArray[np.float64] | None = None
     points_m: FloatArray | None = None
     point_colours: npt.NDArray[np.uint8] | None = None
     points_full_count: int = 0
@@ -162,8 +163,11 @@ def load_scene(
     *,
     max_triangles: int = MESH_TRIANGLE_BUDGET,
     max_points: int = POINT_BUDGET,
+    coverage: Any = None,
 ) -> ViewerScene:
-    """The viewer's scene from a run folder, decimated to the budgets."""
+    """The viewer's scene from a run folder, decimated to the budgets; with `coverage`
+    (a `coverage_report.RunCoverage`) each mesh vertex also gets the score of the
+    nearest coverage sample (all sessions), for the "colour by coverage" toggle."""
     from postproc.dense.ply import read_ply
 
     scene = ViewerScene()
@@ -180,6 +184,12 @@ def load_scene(
             scene.mesh_full_triangles = len(ply.faces)
             scene.mesh_cell_m = small.cell_m
             scene.mesh_file = str(mesh_path.relative_to(out))
+            if coverage is not None and coverage.merged_score is not None:
+                from scipy.spatial import cKDTree
+
+                tree = cKDTree(coverage.surface.points_m)
+                _, nearest = tree.query(small.vertices_m)
+                scene.mesh_coverage = np.asarray(coverage.merged_score)[nearest]
         except Exception as error:  # a report shows what it can
             scene.notes.append(f"mesh: {error}")
     else:
@@ -241,6 +251,10 @@ def scene_document(scene: ViewerScene) -> dict[str, Any]:
             "full_triangles": scene.mesh_full_triangles,
             "cell_m": scene.mesh_cell_m,
             "file": scene.mesh_file,
+            # Coverage score per vertex, 0..255 (None: not computed).
+            "coverage": None
+            if scene.mesh_coverage is None
+            else _b64(np.clip(np.rint(scene.mesh_coverage * 255), 0, 255).astype(np.uint8)),
         }
     if scene.points_m is not None:
         document["points"] = {

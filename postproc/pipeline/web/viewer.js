@@ -4,7 +4,8 @@
 // precision on the GPU); every number shown is in W.
 //
 // URL hash options (also what the tests use): #hide=mesh,points,targets,keyframes,
-// session:NAME (layers off at load), view=top|side|oblique, zoom=F (closer by F).
+// session:NAME (layers off at load), view=top|side|oblique, zoom=F (closer by F),
+// colour=coverage (the mesh coloured by the coverage score).
 // window.wreckmapViewer exposes ready, frames, toScreen(worldXYZ) and lastMeasure_m.
 (function () {
   "use strict";
@@ -80,6 +81,8 @@
 
   const bounds = new THREE.Box3();
   let meshObject = null;
+  let coverageColours = null; // per-vertex coverage colours, and the photo colours
+  let photoColours = null;
   let pointsObject = null;
   const info = [];
   if (sceneDoc.mesh) {
@@ -98,6 +101,20 @@
     });
     meshObject = new THREE.Mesh(geometry, material);
     addLayer("mesh", "mesh", [meshObject]);
+    if (m.coverage) {
+      // The coverage score per vertex on the red-yellow-green ramp of the coverage maps.
+      const ramp = [[215, 48, 39], [254, 224, 139], [26, 152, 80]];
+      const score = bytes(m.coverage);
+      const out = new Float32Array(score.length * 3);
+      for (let i = 0; i < score.length; i++) {
+        const t = score[i] / 255 * 2, k = Math.min(Math.floor(t), 1), f = t - k;
+        for (let j = 0; j < 3; j++) {
+          out[3 * i + j] = srgbToLinear[Math.round(ramp[k][j] * (1 - f) + ramp[k + 1][j] * f)];
+        }
+      }
+      coverageColours = new THREE.BufferAttribute(out, 3);
+      photoColours = geometry.getAttribute("color") || null;
+    }
     info.push(
       m.triangles === m.full_triangles
         ? `mesh: ${m.triangles.toLocaleString()} triangles (${m.file}, in full)`
@@ -268,7 +285,28 @@
     row.appendChild(document.createTextNode("keyframe cameras"));
     panel.appendChild(row);
   }
+  if (coverageColours) {
+    const row = document.createElement("label");
+    const box = document.createElement("input");
+    box.type = "checkbox";
+    box.id = "wm-coverage";
+    box.checked = hash.get("colour") === "coverage";
+    box.addEventListener("change", () => { applyLayers(); render(); });
+    row.appendChild(box);
+    row.appendChild(document.createTextNode("mesh coloured by coverage"));
+    panel.appendChild(row);
+  }
   function applyLayers() {
+    const coverageBox = document.getElementById("wm-coverage");
+    if (coverageBox) {
+      const geometry = meshObject.geometry;
+      const wanted = coverageBox.checked ? coverageColours : photoColours;
+      if (wanted) geometry.setAttribute("color", wanted);
+      else geometry.deleteAttribute("color");
+      meshObject.material.vertexColors = !!wanted;
+      meshObject.material.color.set(wanted ? 0xffffff : 0xb0b0b0);
+      meshObject.material.needsUpdate = true;
+    }
     for (const box of panel.querySelectorAll("input[data-layer]")) {
       for (const o of layers[box.dataset.layer].objects) o.visible = box.checked;
     }

@@ -124,6 +124,12 @@ def test_viewer_draws_toggles_measures_offline(tmp_path: Path) -> None:
         assert not green(hidden).any()
         b_, g_, r_ = (hidden[:, :, k].astype(int) for k in range(3))
         assert ((r_ > g_ + 50) & (r_ > b_ + 40)).mean() > 0.002
+        # The mesh coloured by its coverage score: other colours than the photo's green.
+        open_viewer(b, url + "#colour=coverage")
+        assert b.evaluate("document.getElementById('wm-coverage').checked") is True
+        by_coverage = canvas_image(b)
+        assert green(by_coverage).mean() < 0.2 * green(full).mean()
+        assert drawn_fraction(by_coverage) > 0.05
         # Unticking the box by a real click draws the same picture as the hash.
         open_viewer(b, url)
         frames = b.evaluate("window.wreckmapViewer.frames")
