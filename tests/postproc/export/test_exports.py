@@ -221,14 +221,20 @@ def test_camera_reference_positions_angles_and_accuracies(
     assert "<f>152.000000</f>" in xml and "<b1>-2.000000</b1>" in xml
 
 
-def test_undistorted_image_puts_a_point_where_the_pinhole_says(tmp_path: Path) -> None:
+FISHEYE = (150.0, 151.0, 128.5, 96.0, 0.05, -0.02, 0.004, -0.001)  # fx fy cx cy k1-k4
+
+
+@pytest.mark.parametrize(("model", "params"), [("OPENCV", PARAMS), ("OPENCV_FISHEYE", FISHEYE)])
+def test_undistorted_image_puts_a_point_where_the_pinhole_says(
+    model: str, params: list[float]
+) -> None:
     import cv2
 
     from postproc.export.camera_reference import undistort_maps
     from postproc.export.cameras import ExportCamera, project
 
     camera = ExportCamera(
-        name="a.png", camera_id=1, model="OPENCV", params=tuple(PARAMS), width=WIDTH,
+        name="a.png", camera_id=1, model=model, params=tuple(params), width=WIDTH,
         height=HEIGHT, cam_from_world=np.eye(4), points_m=np.zeros((0, 3)),
         pixels=np.zeros((0, 2)),
     )  # fmt: skip
@@ -305,3 +311,22 @@ def test_a_stage_folder_is_a_run_too(run_folder: RunFixture, tmp_path: Path) -> 
     out = run(ExportOptions(formats=("colmap-text",)), run_folder.root / "sfm", tmp_path / "x")
     rec = pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0"))
     assert rec.num_reg_images() == 6
+
+
+def test_nerfstudio_fisheye_intrinsics() -> None:
+    from postproc.export.cameras import ExportCamera
+    from postproc.export.nerfstudio import transforms_document
+
+    camera = ExportCamera(
+        name="s/1.png", camera_id=1, model="OPENCV_FISHEYE", params=FISHEYE, width=WIDTH,
+        height=HEIGHT, cam_from_world=np.eye(4), points_m=np.zeros((0, 3)),
+        pixels=np.zeros((0, 2)),
+    )  # fmt: skip
+    document = transforms_document([camera], with_points=False)
+    assert document["camera_model"] == "OPENCV_FISHEYE"
+    assert [document[k] for k in ("k1", "k2", "k3", "k4")] == list(FISHEYE[4:])
+    assert "p1" not in document and "ply_file_path" not in document
+    # Identity T_W_C (OpenCV axes) in OpenGL axes: y and z flipped.
+    np.testing.assert_array_equal(
+        document["frames"][0]["transform_matrix"], np.diag([1, -1, -1, 1])
+    )
