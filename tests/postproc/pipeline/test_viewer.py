@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from postproc.dense.ply import PlyData, read_ply, write_ply
+from postproc.dense.ply import PlyData, write_ply
 from postproc.pipeline.browser import HeadlessChromium
 from postproc.pipeline.decimate import cluster_vertices, decimate_mesh, subsample_points
 from postproc.pipeline.project import load_project
@@ -35,14 +35,39 @@ def world(p: list[float]) -> list[float]:
     return (H[:3, :3] @ np.asarray(p, float) + H[:3, 3]).tolist()
 
 
+def fine_cube(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A 2 m cube centred at the origin, each face an n x n grid of squares (two
+    triangles each, wound outwards)."""
+    t = np.linspace(-1.0, 1.0, n + 1)
+    a, b = np.meshgrid(t, t, indexing="ij")
+    vertices, faces = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            grid = np.zeros((n + 1, n + 1, 3))
+            u, v = (axis + 1) % 3, (axis + 2) % 3
+            grid[..., axis], grid[..., u], grid[..., v] = sign, a, b
+            base = sum(len(x) for x in vertices)
+            vertices.append(grid.reshape(-1, 3))
+            for i in range(n):
+                for j in range(n):
+                    k = base + i * (n + 1) + j
+                    quad = [k, k + n + 1, k + n + 2, k + 1]
+                    tri = [[quad[0], quad[1], quad[2]], [quad[0], quad[2], quad[3]]]
+                    faces += tri if sign > 0 else [t_[::-1] for t_ in tri]
+    return np.vstack(vertices), np.array(faces)
+
+
 def viewer_run(root: Path) -> Path:
     """The report fixture plus what the viewer draws: vertex colours, fused points, a
     target, a camera model (so that coverage runs too)."""
     project, _ = build(root, rng=np.random.default_rng(5))
     out = root / "out"
-    mesh = read_ply(out / "dense" / "mesh.ply")
-    mesh.colors = np.tile(np.array([[60, 200, 60]], np.uint8), (len(mesh.vertices), 1))
-    write_ply(out / "dense" / "mesh.ply", mesh, overwrite=True)
+    # The same cube as the fixture's, each face a 16 x 16 grid (coverage needs samples).
+    vertices, faces = fine_cube(16)
+    vertices = (vertices + np.array([0.0, 0.0, -10.0])) @ H[:3, :3].T + H[:3, 3]
+    colours = np.tile(np.array([[60, 200, 60]], np.uint8), (len(vertices), 1))
+    write_ply(out / "dense" / "mesh.ply", PlyData(vertices=vertices, faces=faces,
+                                                  colors=colours), overwrite=True)  # fmt: skip
     rng = np.random.default_rng(1)
     points = rng.uniform(-1, 1, (5000, 3))
     points[np.arange(5000), rng.integers(0, 3, 5000)] = rng.choice([-1.0, 1.0], 5000)
@@ -202,9 +227,10 @@ def test_decimation_meets_the_budget_and_keeps_the_shape() -> None:
 
 def test_scene_document_positions_round_trip(tmp_path: Path) -> None:
     viewer_run(tmp_path)
-    scene = load_scene(tmp_path / "out", ["s1"], max_triangles=6, max_points=1000)
+    scene = load_scene(tmp_path / "out", ["s1"], max_triangles=500, max_points=1000)
     document = scene_document(scene)
-    assert document["mesh"]["full_triangles"] == 12 and document["mesh"]["triangles"] <= 6
+    assert document["mesh"]["full_triangles"] == 6 * 16 * 16 * 2
+    assert 100 < document["mesh"]["triangles"] <= 500
     assert document["points"]["full_count"] == 5000
     assert len(document["points"]["colours"]) > 0
     import base64
@@ -229,3 +255,30 @@ def test_missing_library_is_named_and_the_report_still_written(
         viewer.three_bundle()
     page = viewer.viewer_html(viewer.ViewerScene())
     assert "3D viewer not available" in page and "<script" not in page
+
+
+def test_run_coverage_from_the_mesh_or_else_the_points(tmp_path: Path) -> None:
+    from postproc.pipeline.coverage_report import compute_run_coverage, gap_rows, write_coverage
+
+    viewer_run(tmp_path)
+    out = tmp_path / "out"
+    coverage = compute_run_coverage(out, ["s1"])
+    assert coverage.surface_source == "dense/mesh.ply" and coverage.keyframes == {"s1": 20}
+    assert set(coverage.maps) == {"merged"}  # one session: its map is the merged one
+    assert set(coverage.maps["merged"]) == {"top", "side_pos", "side_neg"}
+    rows = gap_rows(coverage)
+    assert rows and all(r["nearest_target"] == "grid_a" for r in rows)
+    target = np.asarray(json.loads((out / "merge" / "targets.json").read_text())["grid_a"]["T_W_m"])
+    for row in rows:
+        offset = np.asarray(row["centre_m"]) - target[:3, 3]
+        assert row["offset_from_target_m"] == pytest.approx(offset, abs=0.01)
+    written = write_coverage(out, coverage)
+    assert written["merged"].read_bytes()[:4] == b"\x89PNG"
+    document = json.loads((out / "coverage" / "coverage.json").read_text())
+    assert document["largest_gaps"]["merged"] == rows
+    (out / "dense" / "mesh.ply").unlink()
+    from_points = compute_run_coverage(out, ["s1"])
+    assert from_points.surface_source == "dense/fused.ply" and from_points.maps
+    (out / "dense" / "fused.ply").unlink()
+    nothing = compute_run_coverage(out, ["s1"])
+    assert not nothing.maps and "dense stage not run" in nothing.notes[0]
