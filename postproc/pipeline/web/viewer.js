@@ -434,9 +434,9 @@
   };
   api.setView = function (view) { setView(view); render(); };
 
-  document.getElementById("wm-info").textContent =
-    info.concat(sceneDoc.notes).join("; ") + (info.length ? "; " : "") +
-    "the scale bar holds at the orbit centre's distance.";
+  document.getElementById("wm-info").textContent = info
+    .concat(sceneDoc.notes, ["the scale bar holds at the orbit centre's distance."])
+    .join("; ");
   resize();
   setView(hash.get("view") || "oblique");
   applyLayers();
