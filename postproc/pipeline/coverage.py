@@ -107,7 +107,10 @@ class Gap:
 
     centre_m: its centre in W (m); area_m2: its area in the map's plane; no_surface_m2:
     the part with no reconstructed surface; mean_score: over the cells with surface
-    (0 when none); cells: (row, col) indices of its cells in the map grid."""
+    (0 when none); cells: (row, col) indices of its cells in the map grid; over its
+    surface samples the median keyframe count, ray spread (deg) and nearest range (m,
+    inf when none saw it); limited_by: the factor that fell shortest ("views", "angles",
+    "range"), or "no surface"."""
 
     view: ViewName
     centre_m: FloatArray
@@ -115,6 +118,10 @@ class Gap:
     no_surface_m2: float
     mean_score: float
     cells: IntArray
+    median_views: float = 0.0
+    median_spread_deg: float = 0.0
+    median_range_m: float = float("inf")
+    limited_by: str = "no surface"
 
 
 @dataclass(kw_only=True)
@@ -309,15 +316,29 @@ def observe(
     return aggregate(len(surface.points_m), seen, options)
 
 
+def score_factors(
+    views: IntArray | FloatArray,
+    spread_deg: FloatArray,
+    nearest_range_m: FloatArray,
+    options: CoverageOptions,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The views, angles and range factors (each 0..1; see the module docstring)."""
+    f_views = np.minimum(np.asarray(views, float) / max(options.min_views, 1), 1.0)
+    f_angles = np.minimum(np.asarray(spread_deg, float) / max(options.min_spread_deg, 1e-9), 1.0)
+    span = max(options.max_range_m - options.good_range_m, 1e-9)
+    nearest = np.asarray(nearest_range_m, float)
+    finite = np.isfinite(nearest)
+    f_range = np.where(
+        finite, np.clip((options.max_range_m - np.where(finite, nearest, 0.0)) / span, 0, 1), 0.0
+    )
+    return f_views, f_angles, f_range
+
+
 def score_samples(
     views: IntArray, spread_deg: FloatArray, nearest_range_m: FloatArray, options: CoverageOptions
 ) -> FloatArray:
     """The product of the views, angles and range factors (see the module docstring)."""
-    f_views = np.minimum(views / max(options.min_views, 1), 1.0)
-    f_angles = np.minimum(spread_deg / max(options.min_spread_deg, 1e-9), 1.0)
-    span = max(options.max_range_m - options.good_range_m, 1e-9)
-    f_range = np.clip((options.max_range_m - nearest_range_m) / span, 0.0, 1.0)
-    f_range = np.where(np.isfinite(nearest_range_m), f_range, 0.0)
+    f_views, f_angles, f_range = score_factors(views, spread_deg, nearest_range_m, options)
     return np.asarray(f_views * f_angles * f_range, dtype=np.float64)
 
 
@@ -355,8 +376,7 @@ def auto_cell_m(surface: SurfaceSamples) -> float:
 
 def coverage_map(
     surface: SurfaceSamples,
-    score: FloatArray,
-    views: IntArray,
+    observations: Observations,
     view: ViewName,
     options: CoverageOptions,
     *,
@@ -364,6 +384,8 @@ def coverage_map(
 ) -> CoverageMap:
     """The grid of one view with its gaps (largest first)."""
     from scipy import ndimage
+
+    score, views = observations.score, observations.views
 
     cell = cell_m or options.cell_m or auto_cell_m(surface)
     axis_u, axis_v, axis_depth = view_axes(surface, view)
@@ -417,6 +439,7 @@ def coverage_map(
         depth = float(np.median(depth_all[near])) if near.any() else float(np.median(depth_all))
         centre = centre_u * axis_u + centre_v * axis_v + depth * axis_depth
         scored = cell_score[cells[:, 0], cells[:, 1]]
+        inside = (labels == k).reshape(-1)[cell_of_sample] & chosen
         gaps.append(
             Gap(
                 view=view,
@@ -425,6 +448,7 @@ def coverage_map(
                 no_surface_m2=float(holes[cells[:, 0], cells[:, 1]].sum() * cell * cell),
                 mean_score=float(np.nanmean(scored)) if np.isfinite(scored).any() else 0.0,
                 cells=cells.astype(np.int64),
+                **_why(observations, inside, options, no_surface=bool(holes[labels == k].all())),
             )
         )
     gaps.sort(key=lambda g: -g.area_m2)
@@ -446,6 +470,29 @@ def coverage_map(
         gap_labels=gap_labels,
         gaps=gaps,
     )
+
+
+def _why(
+    observations: Observations, inside: BoolArray, options: CoverageOptions, *, no_surface: bool
+) -> dict[str, Any]:
+    """The medians of a gap's samples and the score factor that fell shortest."""
+    if no_surface or not inside.any():
+        return {"limited_by": "no surface"}
+    views = float(np.median(observations.views[inside]))
+    spread = float(np.median(observations.spread_deg[inside]))
+    ranges = observations.nearest_range_m[inside]
+    seen = np.isfinite(ranges)
+    nearest = float(np.median(ranges[seen])) if seen.any() else float("inf")
+    f_views, f_angles, f_range = score_factors(
+        np.array([views]), np.array([spread]), np.array([nearest]), options
+    )
+    by = {"views": float(f_views[0]), "angles": float(f_angles[0]), "range": float(f_range[0])}
+    return {
+        "median_views": views,
+        "median_spread_deg": spread,
+        "median_range_m": nearest,
+        "limited_by": min(by, key=lambda name: by[name]),
+    }
 
 
 @dataclass(kw_only=True)

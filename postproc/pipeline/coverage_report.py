@@ -139,7 +139,7 @@ def compute_run_coverage(
         if label == "merged":
             result.surface, result.merged_score = surface, seen.score
         result.maps[label] = {
-            view: coverage_map(surface, seen.score, seen.views, view, options, cell_m=cell)
+            view: coverage_map(surface, seen, view, options, cell_m=cell)
             for view in VIEWS
         }
     return result
@@ -161,6 +161,12 @@ def gap_rows(coverage: RunCoverage, label: str = "merged") -> list[dict[str, Any
                 "area_m2": round(gap.area_m2, 3),
                 "no_surface_m2": round(gap.no_surface_m2, 3),
                 "mean_score": round(gap.mean_score, 3),
+                "median_views": gap.median_views,
+                "median_spread_deg": round(gap.median_spread_deg, 1),
+                "median_range_m": None
+                if not np.isfinite(gap.median_range_m)
+                else round(gap.median_range_m, 2),
+                "limited_by": gap.limited_by,
                 "nearest_target": None if near is None else near.target,
                 "offset_from_target_m": None
                 if near is None
@@ -269,6 +275,17 @@ def write_coverage(out: Path, coverage: RunCoverage) -> dict[str, Path]:
     return written
 
 
+def _why_text(row: dict[str, Any]) -> str:
+    """What a gap fell short of, with the medians of its samples."""
+    if row["limited_by"] == "no surface":
+        return "no surface"
+    reach = "unseen" if row["median_range_m"] is None else f"{row['median_range_m']:.1f} m"
+    return (
+        f"{row['limited_by']} ({row['median_views']:g} views, "
+        f"{row['median_spread_deg']:.0f} deg, {reach})"
+    )
+
+
 def _well_seen(cmap: CoverageMap, options: CoverageOptions) -> float:
     """Fraction of the outline's cells (surface or hole) scoring at least gap_score."""
     total = int(cmap.surface.sum() + cmap.holes.sum())
@@ -307,7 +324,8 @@ def coverage_html(out: Path, coverage: RunCoverage) -> str:
     rows = gap_rows(coverage)
     if rows:
         head = ("<tr><th>#</th><th>view</th><th>area (m²)</th><th>no surface (m²)</th>"
-                "<th>score</th><th>centre x, y, z (m)</th><th>depth (m)</th>"
+                "<th>score</th><th>short of (views, spread, range)</th>"
+                "<th>centre x, y, z (m)</th><th>depth (m)</th>"
                 "<th>from target (dx, dy, dz m)</th><th>distance (m)</th></tr>")  # fmt: skip
         body = []
         for k, row in enumerate(rows, start=1):
@@ -323,7 +341,7 @@ def coverage_html(out: Path, coverage: RunCoverage) -> str:
             body.append(
                 f"<tr><td>{k}</td><td>{row['view']}</td><td>{row['area_m2']:.2f}</td>"
                 f"<td>{row['no_surface_m2']:.2f}</td><td>{row['mean_score']:.2f}</td>"
-                f"<td>{centre}</td><td>{row['depth_m']:.1f}</td><td>{where}</td>"
+                f"<td>{html.escape(_why_text(row))}</td><td>{centre}</td><td>{row['depth_m']:.1f}</td><td>{where}</td>"
                 f"<td>{distance}</td></tr>"
             )
         parts.append("<h3>Largest gaps, all sessions</h3><table id='coverage-gaps'>" + head

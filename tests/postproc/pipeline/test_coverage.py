@@ -74,7 +74,7 @@ def top_map():
     surface = surface_from_mesh(vertices, faces)
     options = CoverageOptions(cell_m=0.25)
     obs = observe(surface, [survey()], options, occluder=(vertices, faces))
-    return surface, obs, coverage_map(surface, obs.score, obs.views, "top", options)
+    return surface, obs, coverage_map(surface, obs, "top", options)
 
 
 def test_the_skipped_strip_is_the_largest_gap(top_map) -> None:
@@ -174,3 +174,11 @@ def test_sessions_aggregate_to_the_merged_coverage() -> None:
     assert np.array_equal(merged.views, reference.views)
     assert np.array_equal(merged.views, alone[0].views + alone[1].views)
     assert np.allclose(merged.score, reference.score)
+
+
+def test_gaps_say_what_they_fell_short_of(top_map) -> None:
+    _, _, cmap = top_map
+    strip, hole = cmap.gaps[0], next(g for g in cmap.gaps if g.no_surface_m2 > 0)
+    assert hole.limited_by == "no surface"
+    # The strip's middle was never seen; its median sample had too few views.
+    assert strip.limited_by == "views" and strip.median_views < 3
