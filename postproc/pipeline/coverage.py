@@ -110,7 +110,7 @@ class Gap:
     (0 when none); cells: (row, col) indices of its cells in the map grid; over its
     surface samples the median keyframe count, ray spread (deg) and nearest range (m,
     inf when none saw it); limited_by: the factor that fell shortest ("views", "angles",
-    "range"), or "no surface"."""
+    "range"), or "no surface" when most of its cells have none."""
 
     view: ViewName
     centre_m: FloatArray
@@ -448,7 +448,8 @@ def coverage_map(
                 no_surface_m2=float(holes[cells[:, 0], cells[:, 1]].sum() * cell * cell),
                 mean_score=float(np.nanmean(scored)) if np.isfinite(scored).any() else 0.0,
                 cells=cells.astype(np.int64),
-                **_why(observations, inside, options, no_surface=bool(holes[labels == k].all())),
+                # Mostly without surface: that is what it lacks, whatever the rest shows.
+                **_why(observations, inside, options, no_surface=holes[labels == k].mean() > 0.5),
             )
         )
     gaps.sort(key=lambda g: -g.area_m2)
