@@ -1,12 +1,14 @@
 """`report.html` of a project: one self-contained page that opens offline.
 
-Everything is inline: plots and renders as base64 PNG `data:` URIs, styles in one
-`<style>` block, no script and no external reference. Sections: the stage runs (status,
-time, worker), per session the SLAM statistics, a top view of the trajectory and the
-depth sync (numbers and its plot), the merge (transforms, top and side views), the SfM
-statistics, the dense reconstruction (counts and a rendered view of mesh.ply) and, when
-the project has a truth file, the errors against truth (`evaluate`). Stages that have not
-run are listed as such.
+Everything is inline: plots and renders as base64 PNG `data:` URIs, styles in `<style>`
+blocks, the 3D viewer's three.js and script in `<script>` blocks (`viewer.py`), no
+external reference. Sections, model first: the model in 3D (`viewer.py`), the coverage
+for the next dive (`coverage_report.py`, which also writes `coverage/` in the run
+folder), the stage runs (status, time, worker), per session the SLAM statistics, a top
+view of the trajectory and the depth sync (numbers and its plot), the merge
+(transforms, top and side views), the SfM statistics, the dense reconstruction (counts
+and a rendered view of mesh.ply) and, when the project has a truth file, the errors
+against truth (`evaluate`). Stages that have not run are listed as such.
 """
 
 from __future__ import annotations
