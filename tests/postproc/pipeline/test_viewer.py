@@ -282,3 +282,17 @@ def test_run_coverage_from_the_mesh_or_else_the_points(tmp_path: Path) -> None:
     (out / "dense" / "fused.ply").unlink()
     nothing = compute_run_coverage(out, ["s1"])
     assert not nothing.maps and "dense stage not run" in nothing.notes[0]
+
+
+def test_browser_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from postproc.pipeline import browser
+
+    with HeadlessChromium(profile_dir=tmp_path / "profile") as b:
+        b.open("about:blank")
+        with pytest.raises(browser.BrowserError, match=r"'window.neverTrue' still false"):
+            b.wait_for("window.neverTrue", timeout_s=0.5)
+        with pytest.raises(browser.BrowserError, match=r"page: throw"):
+            b.evaluate("throw new Error('x')")
+    monkeypatch.setattr(browser.shutil, "which", lambda name: None)
+    with pytest.raises(browser.BrowserError, match="chromium is not installed"):
+        HeadlessChromium()
