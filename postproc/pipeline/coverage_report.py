@@ -40,6 +40,7 @@ from postproc.pipeline.coverage import (
     surface_from_mesh,
     surface_from_points,
 )
+from postproc.pipeline.viewer import SESSION_COLOURS
 from shared.fsutil import write_bytes_atomic, write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -68,6 +69,7 @@ class RunCoverage:
     options: CoverageOptions = field(default_factory=CoverageOptions)
     surface: SurfaceSamples | None = None
     merged_score: np.ndarray | None = None
+    camera_paths_m: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _surface(out: Path) -> tuple[SurfaceSamples, tuple[Any, Any] | None, str] | None:
@@ -126,6 +128,7 @@ def compute_run_coverage(
             KeyframeViews(name=path.name, world_from_cam=path.world_from_cam, camera=camera)
         )
         result.keyframes[path.name] = len(path.world_from_cam)
+        result.camera_paths_m[path.name] = path.world_from_cam[:, :3, 3]
     if not sessions:
         result.notes.append("no session with world keyframes and a camera model")
         return result
@@ -215,6 +218,12 @@ def coverage_png(coverage: RunCoverage, label: str) -> bytes:
                     fontweight="bold", color="k",
                     bbox={"boxstyle": "round,pad=0.15", "fc": "white", "alpha": 0.7},
                 )  # fmt: skip
+        # The keyframe paths over the map (the session's colour, as in the viewer).
+        for k, (name, path) in enumerate(coverage.camera_paths_m.items()):
+            if label != "merged" and name != label:
+                continue
+            ax.plot(path @ cmap.axis_u, path @ cmap.axis_v, "-", lw=0.7, alpha=0.8,
+                    color=SESSION_COLOURS[k % len(SESSION_COLOURS)], label=name)  # fmt: skip
         for name, pose in coverage.targets.items():
             p = pose[:3, 3]
             ax.plot(p @ cmap.axis_u, p @ cmap.axis_v, "s", color="#1f3fff", ms=6, mec="w")
@@ -222,7 +231,13 @@ def coverage_png(coverage: RunCoverage, label: str) -> bytes:
                         xytext=(4, 4), fontsize=7, color="#1f3fff")  # fmt: skip
         ax.set_aspect("equal")
         ax.set_title(VIEW_TITLES[view], fontsize=10)
+        # The map's extent, not the paths', sets the limits.
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
         if view == "top":
+            if coverage.camera_paths_m:
+                ax.legend(loc="lower left", fontsize=7, title="keyframe paths",
+                          title_fontsize=7)  # fmt: skip
             ax.set_xlabel("x (m)")
             ax.set_ylabel("y (m)")
         else:
