@@ -18,7 +18,14 @@
   window.wreckmapViewer = api;
 
   const hash = new URLSearchParams(window.location.hash.replace(/^#/, ""));
-  const hidden = new Set((hash.get("hide") || "").split(",").filter((s) => s));
+  // Without a hide= option the fused points start hidden when there is a mesh (they
+  // would cover it); hide= (even empty) says exactly which layers start off.
+  const hideOption = hash.get("hide");
+  const hidden = new Set(
+    hideOption === null
+      ? (sceneDoc.mesh && sceneDoc.points ? ["points"] : [])
+      : hideOption.split(",").filter((s) => s)
+  );
   const origin = new THREE.Vector3().fromArray(sceneDoc.min_m);
   const step = sceneDoc.step_m;
 

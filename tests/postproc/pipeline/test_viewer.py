@@ -131,6 +131,8 @@ def test_viewer_draws_toggles_measures_offline(tmp_path: Path) -> None:
     url = report.resolve().as_uri()
     with HeadlessChromium(width_px=1000, height_px=800, profile_dir=tmp_path / "profile") as b:
         assert open_viewer(b, url) >= 1
+        # With a mesh the fused points start hidden (they would cover it).
+        assert b.evaluate("document.getElementById('wm-layer-points').checked") is False
         full = canvas_image(b)
         assert drawn_fraction(full) > 0.05  # not blank: the cube fills part of the view
         # The mesh's colour (green, shaded) is on screen.
@@ -155,8 +157,10 @@ def test_viewer_draws_toggles_measures_offline(tmp_path: Path) -> None:
         by_coverage = canvas_image(b)
         assert green(by_coverage).mean() < 0.2 * green(full).mean()
         assert drawn_fraction(by_coverage) > 0.05
-        # Unticking the box by a real click draws the same picture as the hash.
-        open_viewer(b, url)
+        # Unticking the box by a real click (every layer on: "hide=" names none) draws the
+        # same picture as the hash.
+        open_viewer(b, url + "#hide=")
+        assert b.evaluate("document.getElementById('wm-layer-points').checked") is True
         frames = b.evaluate("window.wreckmapViewer.frames")
         box = b.evaluate(
             "(() => { const r = document.getElementById('wm-layer-mesh')"
