@@ -10,7 +10,7 @@ STAMP := $(VENV)/.wreckmap-installed
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml deploy/setup.sh deploy/system-packages.txt
+$(STAMP): pyproject.toml package.json package-lock.json deploy/setup.sh deploy/system-packages.txt
 	PYTHON=$(PYTHON) VENV=$(VENV) bash deploy/setup.sh
 	touch $(STAMP)
 
