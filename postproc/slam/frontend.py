@@ -14,13 +14,14 @@ equalised with CLAHE (turbid water flattens contrast), then:
 3. through a feature drought (a dark or blurred frame, the camera swept past the
    wreck: fewer than `drought_min_tracks` survive), the features of the last
    well-tracked frame (the anchor, up to `drought_max_s` old) are tracked
-   into the new image, seeded by the gyro rotation accumulated since then; those
+   into the new image, seeded by the gyro rotation accumulated since then (no
+   bridge without the gyro); those
    that pass both checks come back with their old ids, so the backend's landmarks
    carry on instead of a new map starting from scratch;
 4. new corners (Shi-Tomasi) fill empty cells of a grid so features stay spread
    over the image, up to `max_features`. Each cell's threshold is relative to its
-   own strongest corner (a flat cell fills from weaker corners); a cell that
-   still yields fewer than its share is searched again at
+   own strongest corner (a flat cell fills from weaker corners); when the frame
+   still has few features, the cells short of their share are searched again at
    `quality_level * weak_quality_factor`.
 
 Features carry stable integer track ids; the output is a `FrameTracks` with
@@ -57,8 +58,11 @@ class FrontendOptions:
     max_forward_backward_px: forward-backward consistency bound.
     ransac_threshold_px: epipolar distance bound of the essential-matrix RANSAC.
     border_px: features closer than this to the image border are dropped.
-    weak_quality_factor: a grid cell that gives fewer corners than its share at
-        `quality_level` is searched again at this fraction of it (1: never).
+    weak_quality_factor / weak_fill_below: when a frame ends up with fewer than
+        `weak_fill_below` features, the grid cells short of their share are searched
+        again at `quality_level * weak_quality_factor` (1: never). Only then: in a
+        textured image weak corners track worse than the strong ones they would join
+        (the visual-only path on EuRoC MH_01 failed with them everywhere).
     drought_min_tracks / drought_max_s / anchor_min_tracks: below `drought_min_tracks`
         surviving tracks the frontend re-tracks the anchor (the last frame that kept at
         least `anchor_min_tracks`) if it is at most `drought_max_s` old.
@@ -79,6 +83,7 @@ class FrontendOptions:
     ransac_threshold_px: float = 1.0
     border_px: int = 4
     weak_quality_factor: float = 0.1
+    weak_fill_below: int = 200
     drought_min_tracks: int = 40
     drought_max_s: float = 2.0
     anchor_min_tracks: int = 80
@@ -234,8 +239,11 @@ class KltFrontend:
             self._now_from_anchor = (
                 None if rotation is None else np.asarray(rotation) @ self._now_from_anchor
             )
+        # Only with the gyro: without a rotation guess a search from a frame seconds old
+        # locks onto wrong corners often enough to corrupt landmarks (visual-only path).
         if (
             anchor is not None
+            and self._now_from_anchor is not None
             and len(self._points) < o.drought_min_tracks
             and (stamp_ns - anchor[1]) * 1e-9 <= o.drought_max_s
             and anchor[0] is not self._previous
@@ -377,34 +385,22 @@ class KltFrontend:
             )
             cell_of = cy * o.grid_cols + cx
         counts = np.bincount(cell_of, minlength=o.grid_cols * o.grid_rows)
-        new_points = []
-        for cell in np.argsort(counts, kind="stable"):
-            r, c = divmod(int(cell), o.grid_cols)
-            want = quota - int(counts[cell])
-            if want > 0:
-                x0, x1, y0, y1 = xs[c], xs[c + 1], ys[r], ys[r + 1]
-                corners = cv2.goodFeaturesToTrack(
-                    grey[y0:y1, x0:x1],
-                    maxCorners=want,
-                    qualityLevel=o.quality_level,
-                    minDistance=o.min_distance_px,
-                    mask=mask[y0:y1, x0:x1],
-                )
-                found = 0 if corners is None else len(corners)
-                if found < want and o.weak_quality_factor < 1.0:
-                    # A flat cell: its strongest corner sets a low bar already; lower it
-                    # once more rather than leave the cell empty.
-                    weaker = cv2.goodFeaturesToTrack(
-                        grey[y0:y1, x0:x1],
-                        maxCorners=want,
-                        qualityLevel=o.quality_level * o.weak_quality_factor,
-                        minDistance=o.min_distance_px,
-                        mask=mask[y0:y1, x0:x1],
-                    )
-                    if weaker is not None and len(weaker) > found:
-                        corners = weaker
-                if corners is not None:
-                    new_points.append(corners.reshape(-1, 2) + np.array([x0, y0], np.float32))
+        order = np.argsort(counts, kind="stable")
+        new_points = self._detect(grey, mask, xs, ys, order, counts, quota, o.quality_level)
+        total = len(self._points) + sum(len(p) for p in new_points)
+        if total < o.weak_fill_below and o.weak_quality_factor < 1.0:
+            # A flat image: each cell's strongest corner set a bar its texture stays
+            # under. Search the cells still short at a lower bar rather than leave them
+            # empty (only then: weak corners in a rich image are worse than none).
+            for points in new_points:
+                for x, y in points:
+                    cv2.circle(mask, (round(float(x)), round(float(y))), o.min_distance_px, 0, -1)
+                    r = min(int(np.searchsorted(ys, y, side="right")) - 1, o.grid_rows - 1)
+                    c = min(int(np.searchsorted(xs, x, side="right")) - 1, o.grid_cols - 1)
+                    counts[r * o.grid_cols + c] += 1
+            new_points += self._detect(
+                grey, mask, xs, ys, order, counts, quota, o.quality_level * o.weak_quality_factor
+            )
         if not new_points:
             return
         # Emptier cells come first in the list; cut at the overall budget.
@@ -413,6 +409,37 @@ class KltFrontend:
         ids = np.arange(self._next_id, self._next_id + len(added), dtype=np.int64)
         self._next_id += len(added)
         self._ids = np.concatenate([self._ids, ids])
+
+    def _detect(
+        self,
+        grey: Image,
+        mask: Image,
+        xs: IntArray,
+        ys: IntArray,
+        order: IntArray,
+        counts: IntArray,
+        quota: int,
+        quality_level: float,
+    ) -> list[npt.NDArray[np.float32]]:
+        """Shi-Tomasi corners in every grid cell short of `quota`, emptier cells first."""
+        o = self.options
+        found = []
+        for cell in order:
+            r, c = divmod(int(cell), o.grid_cols)
+            want = quota - int(counts[cell])
+            if want <= 0:
+                continue
+            x0, x1, y0, y1 = xs[c], xs[c + 1], ys[r], ys[r + 1]
+            corners = cv2.goodFeaturesToTrack(
+                grey[y0:y1, x0:x1],
+                maxCorners=want,
+                qualityLevel=quality_level,
+                minDistance=o.min_distance_px,
+                mask=mask[y0:y1, x0:x1],
+            )
+            if corners is not None:
+                found.append(corners.reshape(-1, 2) + np.array([x0, y0], np.float32))
+        return found
 
 
 def track_ids_in_both(a: FrameTracks, b: FrameTracks) -> tuple[IntArray, IntArray]:
