@@ -104,15 +104,23 @@ FloatArray = npt.NDArray[np.float64]
 SIM_TILT_SIGMA_DEG = SurveyOptions().tilt_deg
 METHODS = (
     ("paper (6 DoF, Euler)", MergeOptions(method="paper", plot=False)),
-    ("ours 6 DoF", MergeOptions(method="ours", dof=6, plot=False)),
-    ("ours 4 DoF", MergeOptions(method="ours", dof=4, plot=False)),
+    ("ours 6 DoF", MergeOptions(method="ours", dof=6, natural_features=False, plot=False)),
+    ("ours 4 DoF", MergeOptions(method="ours", dof=4, natural_features=False, plot=False)),
     (
         "ours 4 DoF, plain mean",
-        MergeOptions(method="ours", dof=4, drift_weighting=False, plot=False),
+        MergeOptions(
+            method="ours", dof=4, drift_weighting=False, natural_features=False, plot=False
+        ),
     ),
     (
         "ours 6 DoF + tilt prior",
-        MergeOptions(method="ours", dof=6, tilt_sigma_deg=SIM_TILT_SIGMA_DEG, plot=False),
+        MergeOptions(
+            method="ours",
+            dof=6,
+            tilt_sigma_deg=SIM_TILT_SIGMA_DEG,
+            natural_features=False,
+            plot=False,
+        ),
     ),
     (
         "ours tilt prior, plain mean",
@@ -121,10 +129,24 @@ METHODS = (
             dof=6,
             tilt_sigma_deg=SIM_TILT_SIGMA_DEG,
             drift_weighting=False,
+            natural_features=False,
             plot=False,
         ),
     ),
 )
+#: Natural-feature rows (`--features`): the joint estimate with no targets at all
+#: (the target YAMLs are not given) and with targets and features together.
+FEATURE_METHODS = (
+    (
+        "features only (no targets)",
+        MergeOptions(method="ours", dof=6, tilt_sigma_deg=SIM_TILT_SIGMA_DEG, plot=False),
+    ),
+    (
+        "targets + features",
+        MergeOptions(method="ours", dof=6, tilt_sigma_deg=SIM_TILT_SIGMA_DEG, plot=False),
+    ),
+)
+NO_TARGETS = FEATURE_METHODS[0][0]
 #: The session-frame row no estimator can beat on average (wreck only, see `first_sighting_floor`).
 FLOOR = "floor: exact at 1st sight"
 
@@ -166,6 +188,7 @@ def make_fieldsim_survey(
     outliers: float,
     *,
     yaw_drift_only: bool = True,
+    every_keyframe: bool = False,
 ) -> tuple[list[Path], list[Path], SurveyTruth]:
     """SLAM-like folders from the survey simulator (`field.sim`): its wreck, its two hull
     grids, its diver routes and renderer; SLAM errors added to the true camera poses.
@@ -173,7 +196,9 @@ def make_fieldsim_survey(
     Keyframes at 1 Hz where a grid is within 3.5 m and at least half in view. SLAM error:
     a random-walk drift (0.02 deg and 3 mm per sqrt(s); the rotation about z only unless
     `yaw_drift_only` is false), per-keyframe jitter (0.15 deg, 1 cm), a session tilt
-    (0.05 deg) and `outliers` gross errors (3-12 deg, 0.15-0.6 m).
+    (0.05 deg) and `outliers` gross errors (3-12 deg, 0.15-0.6 m). `every_keyframe`:
+    keyframes at 1 Hz along the whole dive, as a SLAM writes them (natural-feature
+    merging needs the structure between the targets too).
     """
     import cv2
 
@@ -213,6 +238,8 @@ def make_fieldsim_survey(
                 inside &= (px[:, 1] >= 0) & (px[:, 1] < camera.height)
                 seen_by[placement.name][i] = inside.mean() >= 0.5
         seen = np.any(np.array(list(seen_by.values())), axis=0)
+        if every_keyframe:
+            seen = np.ones(len(stamps), dtype=bool)
         # The session frame: gravity-aligned (up to a small tilt) at the first camera.
         first = world_from_cam[0]
         yaw = np.arctan2(first[1, 2], first[0, 2])
@@ -332,6 +359,60 @@ def at_target_error(
     return out
 
 
+def shared_structure_references(
+    root: Path, truth: SurveyTruth, reference: str, session: str, *, limit: int = 300
+) -> list[tuple[FloatArray, FloatArray]]:
+    """Per keyframe pair that films the same structure: (T*, that structure in session k's map).
+
+    Two keyframes (one per session, non-outliers) share structure when the points 2.5 m
+    ahead of the true cameras lie within 1 m and the viewing directions within 30
+    degrees. There the maps sit in frames `A_1(t1)`, `A_k(tk)` off the true session
+    frames (the drift of those keyframes), and `T* = A_1 inv(T_W_S1) T_W_Sk inv(A_k)`
+    overlays them; the point is the one 2.5 m ahead of session k's camera in its map.
+    At most `limit` pairs, evenly spread over the list.
+    """
+    data = [np.load(root / f"truth_{name}.npz") for name in (reference, session)]
+    world = [truth.world_from_session[reference], truth.world_from_session[session]]
+    cams = [w @ d["session_from_cam_true"] for w, d in zip(world, data, strict=True)]
+    ahead = [c[:, :3, 3] + 2.5 * c[:, :3, 2] for c in cams]
+    distance = np.linalg.norm(ahead[0][:, None] - ahead[1][None], axis=2)
+    cosine = np.einsum("id,jd->ij", cams[0][:, :3, 2], cams[1][:, :3, 2])
+    good = (distance < 1.0) & (cosine > np.cos(np.deg2rad(30.0)))
+    good &= ~data[0]["outlier"][:, None] & ~data[1]["outlier"][None]
+    pairs = np.argwhere(good)
+    if len(pairs) > limit:
+        pairs = pairs[np.linspace(0, len(pairs) - 1, limit).astype(int)]
+    expected = invert_pose(world[0]) @ world[1]
+    out = []
+    for i, j in pairs:
+        a1 = data[0]["session_from_cam_drift"][i] @ invert_pose(data[0]["session_from_cam_true"][i])
+        ak = data[1]["session_from_cam_drift"][j] @ invert_pose(data[1]["session_from_cam_true"][j])
+        point = data[1]["session_from_cam_drift"][j] @ np.array([0.0, 0.0, 2.5, 1.0])
+        out.append((a1 @ expected @ invert_pose(ak), point[:3]))
+    return out
+
+
+def memoise_features() -> None:
+    """Extract each session's keyframe features once for all natural-feature methods.
+
+    `postproc.merge.natural.session_features` depends only on the images and the
+    options; everything after it (vocabulary, recognition, verification, the joint
+    estimate) runs per method.
+    """
+    import postproc.merge.natural as natural
+
+    original = natural.session_features
+    memo: dict[tuple[str, str], object] = {}
+
+    def features_once(options: object, session: object) -> object:
+        key = (str(session.folder), repr(options))  # type: ignore[attr-defined]
+        if key not in memo:
+            memo[key] = original(options, session)  # type: ignore[arg-type]
+        return memo[key]
+
+    natural.session_features = features_once  # type: ignore[assignment]
+
+
 def first_sighting_floor(
     root: Path, truth: SurveyTruth, reference: str, session: str
 ) -> FloatArray:
@@ -365,6 +446,7 @@ def _render(
     key = f"{args.scene}_seed{seed}_s{args.sessions}_o{args.outliers:g}"
     if args.scene == "fieldsim":
         key += f"_d{args.duration:g}" + ("_tilt" if args.tilt_drift else "")
+        key += "_all" if args.every_keyframe else ""
     root = (Path(args.cache) if args.cache else tmp) / key
     done = root / "bench_truth.pkl"
     if done.is_file():
@@ -385,6 +467,7 @@ def _render(
             args.duration,
             args.outliers,
             yaw_drift_only=not args.tilt_drift,
+            every_keyframe=args.every_keyframe,
         )
     with done.open("wb") as f:
         pickle.dump((folders, targets, truth), f)
@@ -438,14 +521,30 @@ def main() -> int:
         help="fieldsim: let roll and pitch drift too (default: yaw only, as VI-SLAM)",
     )
     parser.add_argument(
+        "--every-keyframe",
+        action="store_true",
+        help="fieldsim: keyframes at 1 Hz along the whole dive (not only near the targets)",
+    )
+    parser.add_argument(
+        "--render-only", action="store_true", help="render (and cache) the seeds, then stop"
+    )
+    parser.add_argument(
+        "--features",
+        action="store_true",
+        help="fieldsim: also the natural-feature rows (no targets; targets + features)",
+    )
+    parser.add_argument(
         "--cache", help="keep the rendered folders here and reuse them (same seed and settings)"
     )
     args = parser.parse_args()
     if not args.no_photos:
         bench_photos()
     memoise_detections()
+    memoise_features()
+    methods = list(METHODS) + (list(FEATURE_METHODS) if args.features else [])
 
-    names = [name for name, _ in METHODS]
+    names = [name for name, _ in methods]
+    shared: dict[str, list[tuple[float, float]]] = {n: [] for n in [*names, "ideal rigid"]}
     frame: dict[str, list[tuple[float, float, float]]] = {n: [] for n in [*names, FLOOR]}
     local: dict[str, list[tuple[float, float]]] = {n: [] for n in [*names, "ideal rigid"]}
     times: dict[str, list[float]] = {n: [] for n in names}
@@ -455,12 +554,23 @@ def main() -> int:
             start = time.perf_counter()
             root, folders, targets, truth = _render(args, seed, Path(tmp))
             render_s = time.perf_counter() - start
+            if args.render_only:
+                print(f"seed {seed}: rendered in {render_s:.0f} s ({root})", flush=True)
+                continue
             keyframes = sum(len(list((f / "keyframes").iterdir())) for f in folders)
             line = f"seed {seed}: {keyframes} keyframes ready in {render_s:.0f} s;"
             at_targets = args.scene == "fieldsim"
             references = (
                 {
                     k: at_target_references(root, truth, "dive1", f"dive{k}")
+                    for k in range(2, args.sessions + 1)
+                }
+                if at_targets
+                else {}
+            )
+            structure = (
+                {
+                    k: shared_structure_references(root, truth, "dive1", f"dive{k}")
                     for k in range(2, args.sessions + 1)
                 }
                 if at_targets
@@ -483,14 +593,23 @@ def main() -> int:
                 shift = np.mean([w[:3, :3] @ c + w[:3, 3] - rotation @ c for w, c in refs], axis=0)
                 fitted = make_pose(rotation, shift)
                 local["ideal rigid"].extend(at_target_error(fitted, refs))
-            for name, options in METHODS:
+            for refs in structure.values():
+                if not refs:
+                    continue
+                rotation = rotation_mean_chordal(
+                    np.array([r[0][:3, :3] for r in refs]), np.ones(len(refs))
+                )
+                shift = np.mean([w[:3, :3] @ c + w[:3, 3] - rotation @ c for w, c in refs], axis=0)
+                shared["ideal rigid"].extend(at_target_error(make_pose(rotation, shift), refs))
+            for name, options in methods:
                 start = time.perf_counter()
                 out = (
                     Path(tmp)
                     / f"seed{seed}"
                     / name.replace(" ", "_").replace(",", "").replace("(", "").replace(")", "")
                 )
-                document = json.loads(run(options, folders, targets, out).read_text())
+                given = [] if name == NO_TARGETS else targets
+                document = json.loads(run(options, folders, given, out).read_text())
                 times[name].append(time.perf_counter() - start)
                 reference = truth.world_from_session["dive1"]
                 for k in range(2, args.sessions + 1):
@@ -510,14 +629,17 @@ def main() -> int:
                     sigmas[name].append((entry["sigma_rotation_deg"], entry["sigma_translation_m"]))
                     if at_targets:
                         local[name].extend(at_target_error(estimate, references[k]))
+                        shared[name].extend(at_target_error(estimate, structure[k]))
                 rot_e, trans_e, _ = frame[name][-1]
-                line += f" {name.split(' (')[0]}: {rot_e:.3f} deg {100 * trans_e:.1f} cm"
+                line += f" {name}: {rot_e:.3f} deg {100 * trans_e:.1f} cm"
                 if at_targets:
                     here = np.array(local[name][-len(references[args.sessions]) :])
                     rot_t, pos_t = _rms(list(here[:, 0])), 100 * _rms(list(here[:, 1]))
                     line += f" (at targets {rot_t:.3f} deg {pos_t:.1f} cm)"
                 line += ";"
             print(line, flush=True)
+    if args.render_only:
+        return 0
 
     count = args.seeds * (args.sessions - 1)
     print()
@@ -572,6 +694,19 @@ def main() -> int:
                 f"  paper / {name}: rotation {lrms[names[0]][0] / lrms[name][0]:.1f}x, "
                 f"position {lrms[names[0]][1] / lrms[name][1]:.1f}x"
             )
+    if any(shared.values()):
+        print()
+        print(
+            "where the maps share structure: T_S1_Sk against T* per keyframe pair filming "
+            "the same place (position error 2.5 m ahead of session k's camera), RMS"
+        )
+        print(f"{'method':<28} {'rot RMS deg':>12} {'pos RMS cm':>11} {'pairs':>6}")
+        for name in [*names, "ideal rigid"]:
+            if not shared[name]:
+                continue
+            e = np.array(shared[name])
+            srms = np.sqrt(np.mean(e**2, axis=0))
+            print(f"{name:<28} {srms[0]:>12.3f} {100 * srms[1]:>11.2f} {len(e):>6}")
     return 0
 
 

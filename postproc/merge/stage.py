@@ -1,4 +1,5 @@
-"""The merge stage: put several SLAM sessions into one frame through AprilGrid targets.
+"""The merge stage: put several SLAM sessions into one frame through AprilGrid targets
+and through the structure they both filmed (natural features).
 
 Inputs: SLAM result folders (`keyframes.tum` with camera poses `T_S_C`,
 `keyframes/<timestamp_ns>.png`, `calib/camchain.yaml`; cam0 took the
@@ -19,6 +20,15 @@ Then sessions are placed in the reference session's frame
 depth-fused (gravity-aligned with absolute z), otherwise 6 DoF; with
 `tilt_sigma_deg` (the SLAM's roll/pitch uncertainty) a 6-DoF fit whose
 relative roll and pitch get that gravity prior.
+With `natural_features` (the default) every pair of sessions is also matched
+through the wreck itself (`places`, `natural`: bag-of-words recognition over a
+vocabulary built from the sessions, PnP RANSAC against the other session's
+triangulated keyframe features, the gravity check, pairwise consistency, a
+drift-aware mean), and the session transforms come from every constraint at
+once (`joint.solve_joint`: target poses per session, natural-feature pairs,
+the gravity prior on roll/pitch, the depth prior on z for depth-fused
+sessions, each edge's covariance carrying its session's drift), robustly,
+with a residual per constraint. Targets are then optional.
 `method="paper"` runs the paper's recipe instead (`paper.py`): per-tag poses,
 one-sigma rejection, Euler averaging, sessions placed only through targets
 shared with the reference.
@@ -35,9 +45,13 @@ Outputs in `out_dir`:
   "tilt_prior_sigma_deg" (the gravity prior on roll/pitch, null when none),
   "covariance_convention", "sessions": {folder name: {"placed", "T_W_S"
   (4x4 row-major nested lists), "covariance" (6x6, rotation first, rad and
-  m), "targets", "via", "residuals", "diagnostic_6dof"...}}}. Sessions
-  sharing no target have "placed": false (left for natural-feature merging
-  in the SfM stage). Written last: its presence means the stage is done.
+  m), "targets", "via", "residuals", "diagnostic_6dof"...}}}, and with
+  natural features "estimator": "joint", "pairs" (per pair of sessions the
+  evidence: candidate scores, inlier counts, consistent matches, mergeable or
+  not and why) and "constraints" (per constraint its residual, whitened norm and
+  robust weight). Sessions with no chain of constraints to the reference have
+  "placed": false and the reason. Written last: its presence means the stage
+  is done.
 * `targets.json`: per target its world pose `T_W_m`, covariance, and per
   session the observations used and rejected.
 * `<session>/keyframes_merged.tum`: the keyframe camera poses in W.
@@ -66,6 +80,7 @@ from postproc.merge.align import (
     rotation_difference_rad,
 )
 from postproc.merge.averaging import (
+    DriftModel,
     PoseAverage,
     clustered_covariance,
     drift_weighted_mean,
@@ -76,6 +91,8 @@ from postproc.merge.averaging import (
     robust_pose_mean,
 )
 from postproc.merge.detect import DetectionOptions
+from postproc.merge.joint import Edge, JointEstimate, solve_joint
+from postproc.merge.places import PairEvidence, PlaceOptions
 from shared.errors import InputError, StageError
 from shared.fsutil import write_text_atomic
 from shared.trajectory import Trajectory
@@ -141,6 +158,13 @@ class MergeOptions:
     camera: the camchain entry that took the keyframes.
     plot: write the top and side views.
     detection: tag detection settings.
+    natural_features: (ours) also match every pair of sessions through the structure
+        both filmed and estimate the transforms jointly (`joint.solve_joint`); targets
+        become optional. False: targets only, placed session by session
+        (`align.place_sessions`).
+    places: natural-feature settings (`places.PlaceOptions`).
+    depth_sigma_m: (joint) each depth-fused session's absolute-depth error (m, 1 sigma):
+        the prior on the sessions' relative z.
     """
 
     method: Literal["ours", "paper"] = "ours"
@@ -163,6 +187,9 @@ class MergeOptions:
     camera: str = "cam0"
     plot: bool = True
     detection: DetectionOptions = field(default_factory=DetectionOptions)
+    natural_features: bool = True
+    places: PlaceOptions = field(default_factory=PlaceOptions)
+    depth_sigma_m: float = 0.02
 
 
 @dataclass
@@ -202,7 +229,8 @@ def run(
     *,
     overwrite: bool = False,
 ) -> Path:
-    """Merge the sessions in `slam_dirs` through the targets; returns transforms.json.
+    """Merge the sessions in `slam_dirs` through the targets (may be empty with natural
+    features) and the structure they share; returns transforms.json.
 
     Skips the work when `out_dir/transforms.json` exists and `overwrite` is false.
     Raises InputError for unreadable folders or target files, StageError for
@@ -239,17 +267,37 @@ def run(
     else:
         dof = 4 if depth_fused else 6
     tilt_prior_deg = None if dof == 4 else options.tilt_sigma_deg
-    observations = _observe(options, sessions, grids, target_names)
+    observations = _observe(options, sessions, grids, target_names) if grids else []
+    drift_models: dict[str, DriftModel] = {}
 
     if options.method == "ours":
-        averages = _average_ours(options, sessions, target_names, observations)
+        averages = _average_ours(options, sessions, target_names, observations, drift_models)
     else:
         averages = _average_paper(sessions, target_names, observations)
     estimates = {
         s.name: {m: TargetEstimate(a.pose, a.covariance) for m, a in averages[s.name].items()}
         for s in sessions
     }
-    if options.method == "ours":
+    joint: JointEstimate | None = None
+    pairs: list[PairEvidence] = []
+    if options.method == "ours" and options.natural_features:
+        from postproc.merge.natural import match_sessions
+
+        # Gravity on the pairs' roll/pitch: the IMUs' tilt error (2σ² for the relative
+        # tilt), unless the joint estimate puts that prior on each session itself.
+        if tilt_prior_deg is not None or dof == 4:
+            tilt_variance = 1.0
+        else:
+            tilt_variance = 2.0 * np.deg2rad(options.places.gravity_sigma_deg) ** 2
+        pairs = match_sessions(
+            options.places,
+            sessions,
+            drift_rates=_drift_rates(options, sessions, drift_models),
+            tilt_variance_rad2=tilt_variance,
+        )
+        joint = _solve_joint(options, sessions, reference, dof, tilt_prior_deg, estimates, pairs)
+        placements = _joint_placements(joint, sessions)
+    elif options.method == "ours":
         placements = place_sessions(
             estimates,
             reference,
@@ -261,8 +309,8 @@ def run(
     for session in sessions:
         if session.name not in placements:
             log.warning(
-                "%s shares no target with the placed sessions: not placed (left for "
-                "natural-feature merging in the SfM stage)",
+                "%s: no chain of shared targets or natural-feature matches to the reference: "
+                "not placed",
                 session.name,
             )
 
@@ -300,6 +348,16 @@ def run(
     document = _transforms_document(
         options, sessions, reference, dof, depth_fused, placements, estimates, tilt_prior_deg
     )
+    if options.method == "ours" and options.natural_features:
+        document.update(_joint_document(joint, pairs))
+        for name, entry in document["sessions"].items():
+            if entry["placed"] and joint is not None:
+                _joint_session_entry(entry, name, joint, dof)
+            if not entry["placed"]:
+                entry["reason"] = (
+                    "no chain of shared targets or consistent natural-feature matches to the "
+                    "reference (see pairs for the evidence)"
+                )
     write_text_atomic(transforms_path, json.dumps(document, indent=2) + "\n", overwrite=overwrite)
     return transforms_path
 
@@ -338,8 +396,15 @@ def _check_options(
         )
     if not slam_dirs:
         raise StageError("merge: no SLAM folder given")
-    if not targets:
-        raise StageError("merge: no target YAML given (expected at least one --targets file)")
+    if not targets and (options.method == "paper" or not options.natural_features):
+        raise StageError(
+            "merge: no target YAML given (expected at least one --targets file; only "
+            "method 'ours' with natural features merges without targets)"
+        )
+    if not (options.depth_sigma_m > 0 and np.isfinite(options.depth_sigma_m)):
+        raise StageError(
+            f"merge: depth_sigma_m must be a positive number, got {options.depth_sigma_m}"
+        )
 
 
 def _check_disjoint_ids(grids: Sequence[Any], paths: Sequence[Path | str]) -> None:
@@ -582,12 +647,14 @@ def _average_ours(
     sessions: Sequence[Session],
     target_names: Sequence[str],
     observations: Sequence[Observation],
+    models: dict[str, DriftModel] | None = None,
 ) -> dict[str, dict[str, PoseAverage]]:
     """Per session and target: robust mean (outliers out), then the drift-weighted mean
     (or, with `drift_weighting` off, the robust mean with the local-frame variance).
 
     The drift model (per-keyframe noise, drift rate) is fitted once per session
-    over all its targets' inliers, since the targets share that session's SLAM.
+    over all its targets' inliers, since the targets share that session's SLAM;
+    `models` (when given) receives it for the sessions where it was measured.
     """
     averages: dict[str, dict[str, PoseAverage]] = {}
     for session in sessions:
@@ -623,6 +690,8 @@ def _average_ours(
             ** 2,
             prior_rate_translation_m2_per_s=options.drift_rate_translation_m_per_sqrt_s**2,
         )
+        if models is not None and model.pass_pairs > 0:
+            models[session.name] = model
         if model.pass_pairs == 0:
             # No target filmed in two passes: the session's drift is not measured, and
             # the prior alone should not reweigh keyframes; keep the robust means.
@@ -678,6 +747,132 @@ def _average_ours(
                 residuals=pose_residuals(np.array([o.session_from_target for o in chosen]), pose),
             )
     return averages
+
+
+def _drift_rates(
+    options: MergeOptions, sessions: Sequence[Session], models: dict[str, DriftModel]
+) -> dict[str, FloatArray]:
+    """Per session the drift variance rates (6,): measured from its targets' passes when
+    it has them, else the prior (`drift_rate_*`)."""
+    prior = np.array(
+        [np.deg2rad(options.drift_rate_rotation_deg_per_sqrt_s) ** 2] * 3
+        + [options.drift_rate_translation_m_per_sqrt_s**2] * 3
+    )
+    return {s.name: models[s.name].drift_rate if s.name in models else prior for s in sessions}
+
+
+def _solve_joint(
+    options: MergeOptions,
+    sessions: Sequence[Session],
+    reference: str,
+    dof: int,
+    tilt_prior_deg: float | None,
+    estimates: dict[str, dict[str, TargetEstimate]],
+    pairs: Sequence[PairEvidence],
+) -> JointEstimate:
+    """Targets, natural-feature pairs, gravity and depth in one robust estimate."""
+    edges = [
+        Edge("target", f"{name}@{session}", session, f"target:{name}", e.pose, e.covariance)
+        for session, targets in estimates.items()
+        for name, e in targets.items()
+    ]
+    for pair in pairs:
+        if pair.mergeable and pair.a_from_b is not None and pair.covariance is not None:
+            edges.append(
+                Edge(
+                    "features",
+                    f"{pair.session_a}-{pair.session_b}",
+                    pair.session_a,
+                    pair.session_b,
+                    pair.a_from_b,
+                    pair.covariance,
+                )
+            )
+    if dof == 4:
+        # Gravity-aligned, depth-fused frames: roll and pitch held (the 4-DoF limit).
+        tilt_sigma_rad: float | None = 1e-5
+    else:
+        tilt_sigma_rad = None if tilt_prior_deg is None else float(np.deg2rad(tilt_prior_deg))
+    depth_fused = all(s.depth_fused for s in sessions)
+    return solve_joint(
+        reference,
+        [s.name for s in sessions],
+        edges,
+        tilt_sigma_rad=tilt_sigma_rad,
+        depth_sigma_m=options.depth_sigma_m if depth_fused else None,
+    )
+
+
+def _joint_placements(joint: JointEstimate, sessions: Sequence[Session]) -> dict[str, Placement]:
+    placements = {}
+    for session in sessions:
+        if session.name not in joint.world_from_node:
+            continue
+        via = sorted(
+            {
+                r.edge.parent if r.edge.child == session.name else r.edge.child
+                for r in joint.residuals
+                if session.name in (r.edge.parent, r.edge.child) and r.weight > 0
+            }
+        )
+        placements[session.name] = Placement(
+            world_from_session=joint.world_from_node[session.name],
+            covariance=joint.covariance[session.name],
+            via=tuple(via),
+        )
+    return placements
+
+
+def _joint_session_entry(
+    entry: dict[str, Any], session: str, joint: JointEstimate, dof: int
+) -> None:
+    """Per session: the targets and pairs that placed it and their residuals."""
+    entry["dof"] = dof
+    entry["targets_used"] = sorted(
+        r.edge.child.removeprefix("target:")
+        for r in joint.residuals
+        if r.edge.kind == "target" and r.edge.parent == session and r.weight > 0
+    )
+    entry["residuals"] = {
+        r.edge.child.removeprefix("target:"): {
+            "rotation_deg": r.rotation_deg,
+            "translation_m": r.translation_m,
+        }
+        for r in joint.residuals
+        if r.edge.kind == "target" and r.edge.parent == session
+    }
+    entry["constraints"] = [
+        r.edge.label for r in joint.residuals if session in (r.edge.parent, r.edge.child)
+    ]
+
+
+def _joint_document(joint: JointEstimate | None, pairs: Sequence[PairEvidence]) -> dict[str, Any]:
+    """The joint estimate's constraint residuals and the natural-feature evidence."""
+    constraints = []
+    for r in joint.residuals if joint is not None else ():
+        constraints.append(
+            {
+                "kind": r.edge.kind,
+                "label": r.edge.label,
+                "parent": r.edge.parent,
+                "child": r.edge.child,
+                "rotation_residual_deg": r.rotation_deg,
+                "translation_residual_m": r.translation_m,
+                "whitened_norm": r.mahalanobis,
+                "weight": r.weight,
+                "rejected": r.outlier,
+                "sigma_rotation_deg": float(
+                    np.rad2deg(np.sqrt(np.trace(r.edge.covariance[:3, :3])))
+                ),
+                "sigma_translation_m": float(np.sqrt(np.trace(r.edge.covariance[3:, 3:]))),
+            }
+        )
+    return {
+        "estimator": "joint",
+        "pairs": [p.summary() for p in pairs],
+        "constraints": constraints,
+        "iterations": joint.iterations if joint is not None else 0,
+    }
 
 
 def _seconds(chosen: Sequence[Observation], anchor_ns: int) -> FloatArray:

@@ -79,9 +79,14 @@ def test_stage_places_sessions_and_writes_every_output(survey, tmp_path):
     np.testing.assert_allclose(covariance, covariance.T)
     assert np.all(np.linalg.eigvalsh(covariance) > 0)
     assert sorted(sessions["dive2"]["targets_used"]) == ["bow", "midship"]
-    # Dive 3 shares no target: reported, not placed, no merged trajectory.
+    # Dive 3 shares no target (and the synthetic views share no structure either):
+    # reported with the evidence, not placed, no merged trajectory.
     assert sessions["dive3"]["placed"] is False
-    assert "SfM" in sessions["dive3"]["reason"]
+    assert "natural-feature" in sessions["dive3"]["reason"]
+    pairs = {tuple(p["sessions"]): p for p in document["pairs"]}
+    assert not pairs["dive1", "dive3"]["mergeable"] and not pairs["dive2", "dive3"]["mergeable"]
+    assert document["estimator"] == "joint"
+    assert {c["label"] for c in document["constraints"]} >= {"bow@dive1", "midship@dive2"}
     assert not (out / "dive3").exists()
     merged = read_tum(out / "dive2" / "keyframes_merged.tum")
     original = read_tum(folders[1] / "keyframes.tum")
@@ -113,7 +118,10 @@ def test_paper_method_and_4dof(survey, tmp_path):
         out = tmp_path / f"{method}_{dof}"
         document = json.loads(
             run(
-                MergeOptions(method=method, dof=dof, plot=False), folders[:2], target_paths, out
+                MergeOptions(method=method, dof=dof, natural_features=False, plot=False),
+                folders[:2],
+                target_paths,
+                out,
             ).read_text()
         )
         assert document["method"] == method
@@ -136,12 +144,14 @@ def _add_depth(folder: Path, z_shift_m: float) -> None:
 
 def test_depth_fused_sessions_are_detected_and_aligned_in_4dof(survey, tmp_path):
     folders, target_paths, truth = _copy(survey, tmp_path)
-    _add_depth(folders[0], -10.0)
-    _add_depth(folders[1], -12.0)
+    # The depth stage puts each session at its true depth: W's z of its frame origin.
+    depth_z = {name: float(truth.world_from_session[name][2, 3]) for name in ("dive1", "dive2")}
+    _add_depth(folders[0], depth_z["dive1"])
+    _add_depth(folders[1], depth_z["dive2"])
     out = tmp_path / "merged"
     document = json.loads(run(MergeOptions(plot=False), folders[:2], target_paths, out).read_text())
     assert document["depth_fused"] is True and document["dof"] == 4
-    shift = {name: make_pose(np.eye(3), [0, 0, z]) for name, z in (("dive1", -10), ("dive2", -12))}
+    shift = {name: make_pose(np.eye(3), [0, 0, z]) for name, z in depth_z.items()}
     expected = (
         shift["dive1"] @ _relative_truth(truth, "dive1", "dive2") @ invert_pose(shift["dive2"])
     )
@@ -211,14 +221,17 @@ def test_raise_paths(survey, tmp_path):
         (MergeOptions(tilt_sigma_deg=0.0), "tilt_sigma_deg"),
         (MergeOptions(tilt_sigma_deg=np.inf), "tilt_sigma_deg"),
         (MergeOptions(reference="dive9"), "reference 'dive9'"),
+        (MergeOptions(depth_sigma_m=0.0), "depth_sigma_m"),
     ]
     for options, message in bad_options:
         with pytest.raises(StageError, match=message):
             run(options, folders, target_paths, out)
     with pytest.raises(StageError, match="no SLAM folder"):
         run(MergeOptions(), [], target_paths, out)
-    with pytest.raises(StageError, match="no target YAML"):
-        run(MergeOptions(), folders, [], out)
+    # Without targets only natural-feature merging can work.
+    for options in (MergeOptions(method="paper"), MergeOptions(natural_features=False)):
+        with pytest.raises(StageError, match="no target YAML"):
+            run(options, folders, [], out)
     with pytest.raises(InputError, match="not a folder"):
         run(MergeOptions(), [tmp_path / "missing"], target_paths, out)
     # Two grids claiming the same ids.

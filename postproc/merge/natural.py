@@ -1,0 +1,212 @@
+"""Natural-feature constraints between sessions: the I/O side of `places`.
+
+Reads each session's keyframe images, extracts ORB features, builds the
+vocabulary from all sessions together, and for every pair of sessions runs
+recognition, verification, the consistency check and the drift-aware mean
+(`places`). The result per pair is a `PairEvidence`: mergeable with
+`T_Sa_Sb` and its covariance, or not, with the scores and inlier counts that
+say why.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from postproc.merge.averaging import pose_residuals
+from postproc.merge.places import (
+    KeyframeFeatures,
+    LocalMap,
+    PairEvidence,
+    PlaceOptions,
+    build_vocabulary,
+    candidate_noise,
+    consistent_candidates,
+    extract_features,
+    local_map,
+    pair_drift_mean,
+    place_candidates,
+    verify_candidate,
+    weighted_pose_mean,
+)
+from shared.errors import InputError
+
+log = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def session_features(options: PlaceOptions, session: Any) -> list[KeyframeFeatures]:
+    """ORB features of every keyframe with an image, in keyframe order."""
+    import cv2
+
+    out = []
+    for stamp in session.keyframes.stamps_ns.tolist():
+        path = session.images.get(int(stamp))
+        if path is None:
+            continue
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise InputError(f"{path}: cannot read the keyframe image")
+        pixels, descriptors = extract_features(image, options.features_per_keyframe)
+        rays = session.camera.unproject(pixels)[:, :2] if len(pixels) else np.zeros((0, 2))
+        finite = np.all(np.isfinite(rays), axis=1)
+        out.append(KeyframeFeatures(int(stamp), pixels[finite], rays[finite], descriptors[finite]))
+    return out
+
+
+def match_sessions(
+    options: PlaceOptions,
+    sessions: Sequence[Any],
+    *,
+    drift_rates: Mapping[str, FloatArray],
+    tilt_variance_rad2: float,
+) -> list[PairEvidence]:
+    """Place recognition and verification for every pair of sessions (a before b).
+
+    sessions: the stage's `Session` objects (name, camera, keyframes `T_S_C`,
+    images, anchor_ns). drift_rates: per session the random-walk variance rates
+    (6,) (rad²/s, m²/s) of its SLAM. tilt_variance_rad2: the variance given to each
+    pair's relative roll and pitch, which the candidates take from gravity (zero) and
+    do not measure: the two IMUs' tilt errors (2σ²), or a large value when the joint
+    estimate applies the gravity prior itself. Returns one `PairEvidence` per pair.
+    """
+    features = {s.name: session_features(options, s) for s in sessions}
+    descriptors = [f.descriptors for kfs in features.values() for f in kfs]
+    total = sum(len(d) for d in descriptors)
+    vocabulary = build_vocabulary(
+        descriptors,
+        # Small surveys get fewer words: about 20 sampled descriptors per word.
+        words=max(min(options.vocabulary_words, min(total, options.vocabulary_sample) // 20), 16),
+        sample=options.vocabulary_sample,
+        seed=options.seed,
+    )
+    vectors = {}
+    for name, kfs in features.items():
+        for f in kfs:
+            f.words = vocabulary.assign(f.descriptors)
+        vectors[name] = vocabulary.vectors([f.words for f in kfs])
+    results = []
+    for i, a in enumerate(sessions):
+        for b in sessions[i + 1 :]:
+            results.append(
+                _match_pair(
+                    options,
+                    a,
+                    b,
+                    features,
+                    vectors,
+                    drift_rates=drift_rates,
+                    tilt_variance_rad2=tilt_variance_rad2,
+                )
+            )
+    return results
+
+
+def _match_pair(
+    options: PlaceOptions,
+    a: Any,
+    b: Any,
+    features: Mapping[str, list[KeyframeFeatures]],
+    vectors: Mapping[str, FloatArray],
+    *,
+    drift_rates: Mapping[str, FloatArray],
+    tilt_variance_rad2: float,
+) -> PairEvidence:
+    evidence = PairEvidence(a.name, b.name)
+    fa, fb = features[a.name], features[b.name]
+    pose_a = {int(s): p for s, p in zip(a.keyframes.stamps_ns, a.keyframes.poses, strict=True)}
+    pose_b = {int(s): p for s, p in zip(b.keyframes.stamps_ns, b.keyframes.poses, strict=True)}
+    focal = float(np.mean(np.diag(a.camera.intrinsic_matrix)[:2]))
+    maps: dict[int, LocalMap] = {}
+    verified = []
+    for q, d, score in place_candidates(
+        vectors[b.name],
+        vectors[a.name],
+        per_query=options.candidates_per_query,
+        min_score=options.min_score,
+    ):
+        query, reference = fb[q], fa[d]
+        evidence.candidates.append((query.stamp_ns, reference.stamp_ns, score))
+        if d not in maps:
+            window = int(options.neighbour_window_s * 1e9)
+            neighbours = [
+                (f, pose_a[f.stamp_ns])
+                for f in fa
+                if f is not reference and abs(f.stamp_ns - reference.stamp_ns) <= window
+            ]
+            neighbours.sort(key=lambda n: abs(n[0].stamp_ns - reference.stamp_ns))
+            maps[d] = local_map(
+                reference, pose_a[reference.stamp_ns], neighbours, options, focal_px=focal
+            )
+        if maps[d].points_session.shape[0] < options.min_inliers:
+            evidence.inliers_tried.append(0)
+            continue
+        result, _, inliers = verify_candidate(
+            query, pose_b[query.stamp_ns], maps[d], options, focal_px=focal
+        )
+        evidence.inliers_tried.append(inliers)
+        if result is None:
+            continue
+        evidence.verified.append((query.stamp_ns, reference.stamp_ns, result.inliers))
+        verified.append((query.stamp_ns, reference.stamp_ns, result))
+    if len(verified) < options.min_consistent:
+        evidence.reason = (
+            f"{len(verified)} candidate(s) passed PnP and the gravity check "
+            f"(at least {options.min_consistent} agreeing ones needed)"
+        )
+        return evidence
+    poses = np.array([v[2].a_from_b for v in verified])
+    weights = np.array([float(v[2].inliers) for v in verified])
+    group = consistent_candidates(
+        poses,
+        weights,
+        rotation_rad=np.deg2rad(options.consistency_rotation_deg),
+        translation_m=options.consistency_translation_m,
+    )
+    evidence.consistent = [(v[0], v[1]) for v, keep in zip(verified, group, strict=True) if keep]
+    if int(np.count_nonzero(group)) < options.min_consistent:
+        evidence.reason = (
+            f"{len(verified)} verified candidate(s) but only {int(np.count_nonzero(group))} "
+            f"agree on T_Sa_Sb (at least {options.min_consistent} needed)"
+        )
+        return evidence
+    chosen = poses[group]
+    kept = [v for v, keep in zip(verified, group, strict=True) if keep]
+    times_a = np.array([(v[1] - a.anchor_ns) / 1e9 for v in kept])
+    times_b = np.array([(v[0] - b.anchor_ns) / 1e9 for v in kept])
+    start = weighted_pose_mean(chosen, weights[group])
+    floor = np.array(
+        [np.deg2rad(options.noise_floor_rotation_deg) ** 2] * 3
+        + [options.noise_floor_translation_m**2] * 3
+    )
+    noise = candidate_noise(pose_residuals(chosen, start), times_a, times_b, floor=floor)
+    pose, covariance = pair_drift_mean(
+        chosen,
+        times_a,
+        times_b,
+        rate_a=drift_rates[a.name],
+        rate_b=drift_rates[b.name],
+        noise=noise,
+        start=start,
+    )
+    # Roll and pitch come from gravity, not from the images (`refine_yaw_translation`).
+    covariance[0, 0] = covariance[1, 1] = tilt_variance_rad2
+    evidence.mergeable = True
+    evidence.reason = f"{len(chosen)} of {len(verified)} verified candidates agree"
+    evidence.a_from_b = pose
+    evidence.covariance = covariance
+    evidence.poses = chosen
+    log.info(
+        "%s-%s: %d candidates, %d verified, %d consistent",
+        a.name,
+        b.name,
+        len(evidence.candidates),
+        len(verified),
+        len(chosen),
+    )
+    return evidence

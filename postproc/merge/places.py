@@ -1,0 +1,658 @@
+"""Cross-session place recognition and geometric verification (natural-feature merging).
+
+Every place two dives both filmed is a constraint on their session-to-session
+transform `T_Sa_Sb`. Per pair of sessions (a, b):
+
+1. **Recognition.** ORB features of every keyframe; a vocabulary of binary
+   words by k-means over the sessions' own descriptors (no downloaded
+   vocabulary); TF-IDF bag-of-words vectors; each keyframe of b queries the
+   keyframes of a by cosine score (`place_candidates`).
+2. **Verification.** The reference keyframe's features are triangulated
+   against its neighbours in a (a's SLAM poses, `local_map`), the query's
+   features matched to those points and `T_Sa_Cq` found by PnP RANSAC
+   (`verify_candidate`); with the query's pose `T_Sb_Cq` this gives
+   `T_Sa_Sb = T_Sa_Cq @ inv(T_Sb_Cq)`. Both session frames are
+   gravity-aligned by their IMUs, so a candidate whose relative roll/pitch
+   exceeds `max_tilt_deg` is refused: gravity constrains the two angles no
+   image does well.
+3. **Consistency.** Verified candidates must agree on `T_Sa_Sb`
+   (`consistent_candidates`): the largest group within the rotation and
+   translation tolerances of one another wins; fewer than `min_consistent`
+   verified, agreeing candidates and the pair is not mergeable, with the
+   evidence (scores, inlier counts) kept for the report.
+4. **Drift.** Each candidate carries the drift of a at its reference keyframe
+   and of b at its query keyframe, two random walks from the session anchors:
+   `pair_drift_mean` is the generalised least-squares mean with that
+   covariance (`q_a min(ta_i, ta_j) + q_b min(tb_i, tb_j) + s δ_ij` per axis),
+   so the result leans on the places both dives filmed early.
+
+Pure math and OpenCV calls on arrays: no file I/O (the stage reads images and
+poses). Covariances follow `averaging`: 6x6 of `[δθ, δt]`, rotation first,
+radians and metres, in the parent frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from postproc.merge.align import tilt_vector_rad
+from postproc.merge.averaging import pose_residuals
+from shared.geometry import invert_pose, make_pose, rotation_angle_rad, so3_exp
+
+FloatArray = npt.NDArray[np.float64]
+UInt8Array = npt.NDArray[np.uint8]
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(kw_only=True)
+class PlaceOptions:
+    """Settings of natural-feature merging.
+
+    features_per_keyframe: ORB keypoints per keyframe image.
+    vocabulary_words: words of the k-majority vocabulary (fewer for small surveys: at
+        least 20 sampled descriptors per word); vocabulary_sample: descriptors
+        drawn (over all sessions) to build it; seed: its random generator.
+    candidates_per_query: best-scoring keyframes of the other session kept per query.
+    min_score: smallest TF-IDF cosine score of a candidate (0-1).
+    ratio: Lowe's ratio test of descriptor matches.
+    neighbour_window_s: reference neighbours for triangulation lie within this (s).
+    max_neighbours: the nearest (in time) neighbours triangulated against.
+    min_baseline_m: smallest distance between a reference and a neighbour camera (m).
+    min_parallax_deg: smallest angle between the two rays of a triangulated point.
+    triangulation_reprojection_px: largest reprojection error (pixels) of a triangulated
+        point in either view (loose: neighbouring SLAM poses carry their own noise).
+    ransac_reprojection_px: PnP RANSAC inlier threshold (pixels).
+    min_inliers: fewest PnP inliers of a verified candidate (SVIn2's loop closures: 25).
+    max_tilt_deg: largest relative roll/pitch of the free 6-DoF PnP's `T_Sa_Sb` (a coarse
+        gravity check; the candidate itself is then refined in yaw and translation
+        with roll and pitch from the IMUs, `refine_yaw_translation`).
+    consistency_rotation_deg / consistency_translation_m: two candidates agree when
+        their `T_Sa_Sb` differ by less than both.
+    min_consistent: fewest agreeing verified candidates for a pair to be mergeable.
+    noise_floor_rotation_deg / noise_floor_translation_m: smallest per-candidate
+        noise (1 sigma) of the drift-aware mean.
+    gravity_sigma_deg: roll/pitch error of each session's gravity alignment (deg, 1
+        sigma per axis) given to the pairs' relative tilt when the merge has no tilt
+        prior of its own (`MergeOptions.tilt_sigma_deg`).
+    """
+
+    features_per_keyframe: int = 1000
+    vocabulary_words: int = 4000
+    vocabulary_sample: int = 20000
+    seed: int = 0
+    candidates_per_query: int = 3
+    min_score: float = 0.08
+    ratio: float = 0.8
+    neighbour_window_s: float = 3.0
+    max_neighbours: int = 4
+    min_baseline_m: float = 0.1
+    min_parallax_deg: float = 1.0
+    triangulation_reprojection_px: float = 6.0
+    ransac_reprojection_px: float = 4.0
+    min_inliers: int = 25
+    max_tilt_deg: float = 3.0
+    consistency_rotation_deg: float = 1.5
+    consistency_translation_m: float = 0.25
+    min_consistent: int = 3
+    noise_floor_rotation_deg: float = 0.01
+    noise_floor_translation_m: float = 0.002
+    gravity_sigma_deg: float = 0.1
+
+
+@dataclass
+class KeyframeFeatures:
+    """One keyframe's features: pixels (N, 2), undistorted rays at z=1 (N, 2), ORB (N, 32)."""
+
+    stamp_ns: int
+    pixels: FloatArray
+    normalised: FloatArray
+    descriptors: UInt8Array
+    words: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+
+def extract_features(image: UInt8Array, count: int) -> tuple[FloatArray, UInt8Array]:
+    """ORB keypoints (N, 2) pixels and descriptors (N, 32) of a grayscale image."""
+    import cv2
+
+    orb = cv2.ORB_create(nfeatures=count, fastThreshold=10)
+    keypoints, descriptors = orb.detectAndCompute(image, None)
+    if descriptors is None or not keypoints:
+        return np.zeros((0, 2)), np.zeros((0, 32), dtype=np.uint8)
+    pixels = np.array([k.pt for k in keypoints], dtype=np.float64)
+    return pixels, np.asarray(descriptors, dtype=np.uint8)
+
+
+@dataclass(frozen=True)
+class Vocabulary:
+    """Binary words (K, 32) and their inverse document frequencies (K,)."""
+
+    words: UInt8Array
+    idf: FloatArray
+
+    def assign(self, descriptors: UInt8Array) -> IntArray:
+        """Nearest word (N,) of each descriptor by Hamming distance."""
+        import cv2
+
+        if descriptors.shape[0] == 0:
+            return np.zeros(0, dtype=np.int64)
+        matches = cv2.BFMatcher(cv2.NORM_HAMMING).match(descriptors, self.words)
+        words = np.zeros(descriptors.shape[0], dtype=np.int64)
+        for m in matches:
+            words[m.queryIdx] = m.trainIdx
+        return words
+
+    def vectors(self, word_lists: Sequence[IntArray]) -> FloatArray:
+        """TF-IDF vectors (N, K), L2-normalised, one per keyframe."""
+        out = np.zeros((len(word_lists), self.words.shape[0]))
+        for i, words in enumerate(word_lists):
+            if len(words):
+                out[i] = np.bincount(words, minlength=self.words.shape[0]) / len(words)
+        out *= self.idf
+        norm = np.linalg.norm(out, axis=1, keepdims=True)
+        return np.asarray(out / np.maximum(norm, 1e-12), dtype=np.float64)
+
+
+def build_vocabulary(
+    descriptor_sets: Sequence[UInt8Array],
+    *,
+    words: int,
+    sample: int,
+    seed: int,
+    iterations: int = 10,
+) -> Vocabulary:
+    """Binary words by k-majority over the sessions' own descriptors, with their IDF.
+
+    descriptor_sets: one (N, 32) array per keyframe, all sessions. k-majority is
+    k-means for binary descriptors (as in DBoW): assign each sampled descriptor to
+    its nearest word by Hamming distance, then set each word's bit to the majority
+    of its members' bits; an empty word is re-seeded from a random descriptor.
+    IDF is `log(keyframes / keyframes containing the word)`. Raises ValueError when
+    there are fewer descriptors than words.
+    """
+    import cv2
+
+    present = [d for d in descriptor_sets if len(d)]
+    if not present or sum(len(d) for d in present) < words:
+        raise ValueError(
+            f"build_vocabulary: {sum(len(d) for d in present)} descriptors for {words} words"
+        )
+    everything = np.concatenate(present, axis=0)
+    rng = np.random.default_rng(seed)
+    chosen = everything[rng.choice(everything.shape[0], min(sample, everything.shape[0]), False)]
+    bits = np.unpackbits(chosen, axis=1).astype(np.float64)
+    centres = chosen[rng.choice(chosen.shape[0], words, replace=False)].copy()
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    for _ in range(iterations):
+        labels = np.array([m.trainIdx for m in matcher.match(chosen, centres)], dtype=np.int64)
+        counts = np.bincount(labels, minlength=words)
+        ones = np.stack(
+            [
+                np.bincount(labels, weights=bits[:, j], minlength=words)
+                for j in range(bits.shape[1])
+            ],
+            axis=1,
+        )
+        majority = (2 * ones >= counts[:, None]).astype(np.uint8)
+        centres = np.packbits(majority, axis=1)
+        empty = np.flatnonzero(counts == 0)
+        if len(empty):
+            centres[empty] = chosen[rng.choice(chosen.shape[0], len(empty), replace=False)]
+    vocabulary = Vocabulary(centres, np.ones(words))
+    containing = np.zeros(words)
+    for descriptors in descriptor_sets:
+        containing[np.unique(vocabulary.assign(descriptors))] += 1
+    idf = np.log(len(descriptor_sets) / np.maximum(containing, 1.0))
+    return Vocabulary(centres, idf)
+
+
+def place_candidates(
+    query_vectors: FloatArray, database_vectors: FloatArray, *, per_query: int, min_score: float
+) -> list[tuple[int, int, float]]:
+    """(query index, database index, cosine score) of the best database keyframes per query."""
+    if query_vectors.shape[0] == 0 or database_vectors.shape[0] == 0:
+        return []
+    scores = query_vectors @ database_vectors.T
+    out = []
+    for q in range(scores.shape[0]):
+        for d in np.argsort(-scores[q])[:per_query]:
+            if scores[q, d] >= min_score:
+                out.append((q, int(d), float(scores[q, d])))
+    return out
+
+
+def match_descriptors(a: UInt8Array, b: UInt8Array, *, ratio: float) -> list[tuple[int, int]]:
+    """Mutual nearest neighbours of a in b passing the ratio test: (index in a, index in b)."""
+    import cv2
+
+    if a.shape[0] < 2 or b.shape[0] < 2:
+        return []
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    forward = matcher.knnMatch(a, b, k=2)
+    backward = {m.queryIdx: m.trainIdx for m in matcher.match(b, a)}
+    out = []
+    for pair in forward:
+        if len(pair) < 2:
+            continue
+        best, second = pair
+        if (
+            best.distance < ratio * second.distance
+            and best.distance <= 64
+            and backward.get(best.trainIdx) == best.queryIdx
+        ):
+            out.append((best.queryIdx, best.trainIdx))
+    return out
+
+
+def triangulate(
+    cam_from_session_1: FloatArray,
+    cam_from_session_2: FloatArray,
+    rays_1: FloatArray,
+    rays_2: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """Linear (DLT) triangulation of normalised rays (N, 2) from two camera poses.
+
+    Returns points (N, 3) in the session frame and the parallax (N,) in radians
+    (NaN where a point is behind either camera).
+    """
+    P1 = cam_from_session_1[:3]
+    P2 = cam_from_session_2[:3]
+    n = rays_1.shape[0]
+    A = np.stack(
+        (
+            rays_1[:, :1] * P1[2] - P1[0],
+            rays_1[:, 1:2] * P1[2] - P1[1],
+            rays_2[:, :1] * P2[2] - P2[0],
+            rays_2[:, 1:2] * P2[2] - P2[1],
+        ),
+        axis=1,
+    )
+    _, _, vt = np.linalg.svd(A)
+    w = vt[:, -1, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        points = np.where(np.abs(w[:, None]) > 1e-12, vt[:, -1, :3] / w[:, None], np.nan)
+    homogeneous = np.column_stack((points, np.ones(n)))
+    z1 = homogeneous @ P1[2]
+    z2 = homogeneous @ P2[2]
+    centre_1 = invert_pose(cam_from_session_1)[:3, 3]
+    centre_2 = invert_pose(cam_from_session_2)[:3, 3]
+    d1 = points - centre_1
+    d2 = points - centre_2
+    cosine = np.sum(d1 * d2, axis=1) / np.maximum(
+        np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1), 1e-12
+    )
+    parallax = np.arccos(np.clip(cosine, -1.0, 1.0))
+    parallax[(z1 <= 0) | (z2 <= 0) | ~np.isfinite(z1) | ~np.isfinite(z2)] = np.nan
+    return points, parallax
+
+
+@dataclass(frozen=True)
+class LocalMap:
+    """Points (N, 3) in a session frame with the reference keyframe's descriptors (N, 32)."""
+
+    points_session: FloatArray
+    descriptors: UInt8Array
+
+
+def local_map(
+    reference: KeyframeFeatures,
+    session_from_reference: FloatArray,
+    neighbours: Sequence[tuple[KeyframeFeatures, FloatArray]],
+    options: PlaceOptions,
+    *,
+    focal_px: float,
+) -> LocalMap:
+    """The reference keyframe's features triangulated against its neighbours (SLAM poses).
+
+    neighbours: (features, `T_S_C`) of nearby keyframes of the same session, nearest
+    first; at most `max_neighbours` of them (with the baseline) are used. A feature
+    matched in a neighbour is triangulated with it and that view kept when the
+    parallax is at least `min_parallax_deg` and the point reprojects within
+    `triangulation_reprojection_px` in both; the point is then triangulated from the
+    reference and every kept view at once, which averages the neighbours' pose noise.
+    """
+    ref_from_session = invert_pose(session_from_reference)
+    views: dict[int, list[tuple[FloatArray, FloatArray]]] = {}
+    tolerance = options.triangulation_reprojection_px / focal_px
+    used = 0
+    for features, session_from_cam in neighbours:
+        baseline = np.linalg.norm(session_from_cam[:3, 3] - session_from_reference[:3, 3])
+        if baseline < options.min_baseline_m:
+            continue
+        if used >= options.max_neighbours:
+            break
+        used += 1
+        matches = match_descriptors(
+            reference.descriptors, features.descriptors, ratio=options.ratio
+        )
+        if not matches:
+            continue
+        index = np.array(matches)
+        cam_from_session = invert_pose(session_from_cam)
+        points, parallax = triangulate(
+            ref_from_session,
+            cam_from_session,
+            reference.normalised[index[:, 0]],
+            features.normalised[index[:, 1]],
+        )
+        good = np.isfinite(parallax) & (parallax >= np.deg2rad(options.min_parallax_deg))
+        for pose, rays in (
+            (ref_from_session, reference.normalised[index[:, 0]]),
+            (cam_from_session, features.normalised[index[:, 1]]),
+        ):
+            p = points @ pose[:3, :3].T + pose[:3, 3]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                error = np.linalg.norm(p[:, :2] / p[:, 2:3] - rays, axis=1)
+            good &= error <= tolerance
+        for (i, j), keep in zip(matches, good, strict=True):
+            if keep:
+                views.setdefault(i, []).append((cam_from_session, features.normalised[j]))
+    chosen: dict[int, FloatArray] = {}
+    for i, seen in views.items():
+        poses = [ref_from_session] + [v[0] for v in seen]
+        rays = np.array([reference.normalised[i]] + [v[1] for v in seen])
+        point = triangulate_views(poses, rays)
+        if point is None:
+            continue
+        errors = [
+            reprojection_errors(point[None], ray[None], pose)[0]
+            for pose, ray in zip(poses, rays, strict=True)
+        ]
+        if max(errors) <= tolerance:
+            chosen[i] = point
+    if not chosen:
+        return LocalMap(np.zeros((0, 3)), np.zeros((0, 32), dtype=np.uint8))
+    keys = sorted(chosen)
+    return LocalMap(np.array([chosen[k] for k in keys]), reference.descriptors[keys])
+
+
+def triangulate_views(
+    cam_from_session: Sequence[FloatArray], rays: FloatArray
+) -> FloatArray | None:
+    """One point (3,) from its normalised rays (V, 2) in V >= 2 views (linear DLT)."""
+    rows = []
+    for pose, ray in zip(cam_from_session, rays, strict=True):
+        rows.append(ray[0] * pose[2] - pose[0])
+        rows.append(ray[1] * pose[2] - pose[1])
+    _, _, vt = np.linalg.svd(np.array(rows))
+    if abs(vt[-1, 3]) < 1e-12:
+        return None
+    return np.asarray(vt[-1, :3] / vt[-1, 3], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Verification:
+    """A geometrically verified candidate: `T_Sa_Sb` from one query keyframe of b.
+
+    inliers: PnP inliers; matches: 2D-3D matches tried; tilt_deg: relative roll/pitch.
+    """
+
+    a_from_b: FloatArray
+    inliers: int
+    matches: int
+    tilt_deg: float
+
+
+def verify_candidate(
+    query: KeyframeFeatures,
+    session_b_from_query: FloatArray,
+    reference_map: LocalMap,
+    options: PlaceOptions,
+    *,
+    focal_px: float,
+) -> tuple[Verification | None, int, int]:
+    """PnP RANSAC of the query's features against the other session's local map, then
+    the gravity-constrained refinement (yaw and translation).
+
+    Returns (the verification or None when refused, matches, inliers): refused for
+    fewer than `min_inliers` inliers or a 6-DoF relative tilt over `max_tilt_deg`.
+    """
+    import cv2
+
+    matches = match_descriptors(query.descriptors, reference_map.descriptors, ratio=options.ratio)
+    if len(matches) < max(options.min_inliers, 6):
+        return None, len(matches), 0
+    index = np.array(matches)
+    object_points = reference_map.points_session[index[:, 1]]
+    image_points = query.normalised[index[:, 0]]
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        object_points.astype(np.float64),
+        image_points.astype(np.float64),
+        np.eye(3),
+        None,
+        iterationsCount=300,
+        reprojectionError=options.ransac_reprojection_px / focal_px,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_EPNP,
+    )
+    if not ok or inliers is None or len(inliers) < options.min_inliers:
+        return None, len(matches), 0 if inliers is None else len(inliers)
+    chosen = inliers.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(
+        object_points[chosen], image_points[chosen], np.eye(3), None, rvec, tvec
+    )
+    rotation, _ = cv2.Rodrigues(rvec)
+    cam_from_a = make_pose(rotation, tvec.ravel())
+    six_dof = invert_pose(cam_from_a) @ invert_pose(session_b_from_query)
+    tilt = float(np.rad2deg(np.linalg.norm(tilt_vector_rad(six_dof[:3, :3]))))
+    if tilt > options.max_tilt_deg:
+        return None, len(matches), len(chosen)
+    # Both session frames are gravity-aligned: refine yaw and translation only, with
+    # roll and pitch from the IMUs (the image alone trades tilt against translation).
+    tolerance = options.ransac_reprojection_px / focal_px
+    a_from_b = six_dof
+    for _ in range(2):
+        a_from_b = refine_yaw_translation(
+            object_points[chosen], image_points[chosen], session_b_from_query, a_from_b
+        )
+        error = reprojection_errors(
+            object_points, image_points, invert_pose(a_from_b @ session_b_from_query)
+        )
+        chosen = np.flatnonzero(error <= tolerance)
+        if len(chosen) < options.min_inliers:
+            return None, len(matches), len(chosen)
+    return Verification(a_from_b, len(chosen), len(matches), tilt), len(matches), len(chosen)
+
+
+def reprojection_errors(
+    points: FloatArray, rays: FloatArray, cam_from_points: FloatArray
+) -> FloatArray:
+    """(N,) distance on the z=1 plane between projected points (N, 3) and rays (N, 2);
+    infinite behind the camera."""
+    p = points @ cam_from_points[:3, :3].T + cam_from_points[:3, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        error = np.linalg.norm(p[:, :2] / p[:, 2:3] - rays, axis=1)
+    return np.asarray(np.where(p[:, 2] > 1e-6, error, np.inf), dtype=np.float64)
+
+
+def _rot_z(angle: float) -> FloatArray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def refine_yaw_translation(
+    points_a: FloatArray,
+    rays: FloatArray,
+    session_b_from_query: FloatArray,
+    start: FloatArray,
+    *,
+    iterations: int = 10,
+) -> FloatArray:
+    """`T_Sa_Sb` = (Rz(yaw), t) minimising the query's reprojection errors (Huber).
+
+    points_a: (N, 3) in session a; rays: (N, 2) the query's undistorted features;
+    session_b_from_query: the query camera's pose in b; start: (4, 4) initial guess
+    (its tilt is dropped). Roll and pitch of `T_Sa_Sb` are zero: both frames are
+    gravity-aligned.
+    """
+    R = start[:3, :3]
+    yaw = float(np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1]))
+    x = np.concatenate(([yaw], start[:3, 3]))
+
+    def residual(params: FloatArray) -> FloatArray:
+        a_from_b = make_pose(_rot_z(float(params[0])), params[1:])
+        cam_from_a = invert_pose(a_from_b @ session_b_from_query)
+        p = points_a @ cam_from_a[:3, :3].T + cam_from_a[:3, 3]
+        return np.asarray((p[:, :2] / p[:, 2:3] - rays).reshape(-1), dtype=np.float64)
+
+    for _ in range(iterations):
+        r = residual(x)
+        jacobian = np.empty((r.shape[0], 4))
+        for k in range(4):
+            h = np.zeros(4)
+            h[k] = 1e-6
+            jacobian[:, k] = (residual(x + h) - residual(x - h)) / 2e-6
+        # Huber weights per coordinate at 1.345 robust sigmas (the MAD of the residuals).
+        scale = max(1.4826 * float(np.median(np.abs(r))), 1e-6)
+        w = np.minimum(1.0, 1.345 * scale / np.maximum(np.abs(r), 1e-15))
+        step = np.linalg.lstsq(jacobian * w[:, None] ** 0.5, -r * w**0.5, rcond=None)[0]
+        x = x + step
+        if np.linalg.norm(step) < 1e-10:
+            break
+    return make_pose(_rot_z(float(x[0])), x[1:])
+
+
+def consistent_candidates(
+    poses: FloatArray, weights: FloatArray, *, rotation_rad: float, translation_m: float
+) -> npt.NDArray[np.bool_]:
+    """The largest group (N,) of candidate `T_Sa_Sb` (N, 4, 4) that agree with one another.
+
+    Two candidates agree when they differ by less than both tolerances. The seed is
+    the candidate agreeing with the most others (ties: the larger summed weight); the
+    group is every candidate agreeing with the seed and with the group's mean.
+    """
+    n = poses.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    agree = np.zeros((n, n), dtype=bool)
+    for i in range(n):
+        r = pose_residuals(poses, poses[i])
+        agree[i] = (np.linalg.norm(r[:, :3], axis=1) < rotation_rad) & (
+            np.linalg.norm(r[:, 3:], axis=1) < translation_m
+        )
+    support = agree.sum(axis=1) + (agree @ weights) / (np.sum(weights) + 1.0)
+    seed = int(np.argmax(support))
+    group = agree[seed].copy()
+    mean = weighted_pose_mean(poses[group], weights[group])
+    r = pose_residuals(poses, mean)
+    group &= (np.linalg.norm(r[:, :3], axis=1) < rotation_rad) & (
+        np.linalg.norm(r[:, 3:], axis=1) < translation_m
+    )
+    return group
+
+
+def weighted_pose_mean(poses: FloatArray, weights: FloatArray) -> FloatArray:
+    from shared.geometry import rotation_mean_chordal
+
+    rotation = rotation_mean_chordal(poses[:, :3, :3], weights)
+    translation = np.average(poses[:, :3, 3], axis=0, weights=weights)
+    return make_pose(rotation, translation)
+
+
+def candidate_noise(
+    residuals: FloatArray,
+    times_a_s: FloatArray,
+    times_b_s: FloatArray,
+    *,
+    floor: FloatArray,
+) -> FloatArray:
+    """Per-axis noise variance (6,) of single candidates, from near-simultaneous neighbours.
+
+    Candidates close in both sessions' time share (almost) all their drift, so half
+    the mean squared difference of consecutive ones (sorted by the time sum) is the
+    noise; a robust (median-based) version keeps a stray candidate from inflating it.
+    """
+    if residuals.shape[0] < 3:
+        return floor * 100.0
+    order = np.argsort(times_a_s + times_b_s)
+    difference = np.diff(residuals[order], axis=0)
+    # Median of squares of a normal difference is 0.455 times its variance.
+    variance = 0.5 * np.median(difference**2, axis=0) / 0.455
+    return np.asarray(np.maximum(variance, floor), dtype=np.float64)
+
+
+def pair_drift_mean(
+    poses: FloatArray,
+    times_a_s: FloatArray,
+    times_b_s: FloatArray,
+    *,
+    rate_a: FloatArray,
+    rate_b: FloatArray,
+    noise: FloatArray,
+    start: FloatArray,
+    iterations: int = 2,
+) -> tuple[FloatArray, FloatArray]:
+    """Generalised least-squares `T_Sa_Sb` from candidates of two drifting sessions.
+
+    poses: (N, 4, 4) candidates. times_*: (N,) seconds since each session's anchor
+    (negative counts as 0). rate_*: (6,) random-walk variance rates per axis
+    (rad²/s, m²/s); noise: (6,) per-candidate variance. Per axis the candidates'
+    covariance is `q_a min(ta_i, ta_j) + q_b min(tb_i, tb_j) + s δ_ij`: candidate i
+    carries a's drift at its reference keyframe and b's at its query (small-angle,
+    axes independent). Returns (pose, diagonal 6x6 covariance, drift included).
+    """
+    n = poses.shape[0]
+    ta = np.maximum(np.asarray(times_a_s, dtype=np.float64), 0.0)
+    tb = np.maximum(np.asarray(times_b_s, dtype=np.float64), 0.0)
+    shared_a = np.minimum.outer(ta, ta)
+    shared_b = np.minimum.outer(tb, tb)
+    mean = np.asarray(start, dtype=np.float64).copy()
+    variance = np.zeros(6)
+    for _ in range(max(iterations, 1)):
+        r = pose_residuals(poses, mean)
+        step = np.zeros(6)
+        for k in range(6):
+            sigma = rate_a[k] * shared_a + rate_b[k] * shared_b + np.eye(n) * noise[k]
+            solved = np.linalg.solve(sigma, np.column_stack((np.ones(n), r[:, k])))
+            information = float(np.sum(solved[:, 0]))
+            step[k] = float(np.sum(solved[:, 1])) / information
+            variance[k] = 1.0 / information
+        mean = make_pose(so3_exp(step[:3]) @ mean[:3, :3], mean[:3, 3] + step[3:])
+    return mean, np.diag(variance)
+
+
+@dataclass
+class PairEvidence:
+    """What place recognition found between sessions a (reference side) and b (queries).
+
+    candidates: (query stamp, reference stamp, score) tried; verified: those passing
+    PnP and the gravity check with their inliers; consistent: stamps of the verified
+    ones in the agreeing group; mergeable: at least `min_consistent` of them.
+    """
+
+    session_a: str
+    session_b: str
+    candidates: list[tuple[int, int, float]] = field(default_factory=list)
+    verified: list[tuple[int, int, int]] = field(default_factory=list)
+    inliers_tried: list[int] = field(default_factory=list)
+    consistent: list[tuple[int, int]] = field(default_factory=list)
+    mergeable: bool = False
+    reason: str = ""
+    a_from_b: FloatArray | None = None
+    covariance: FloatArray | None = None
+    poses: FloatArray | None = None
+
+    def summary(self) -> dict[str, object]:
+        """The evidence as JSON-ready numbers."""
+        scores = sorted((c[2] for c in self.candidates), reverse=True)
+        inliers = sorted((v[2] for v in self.verified), reverse=True)
+        return {
+            "sessions": [self.session_a, self.session_b],
+            "mergeable": self.mergeable,
+            "reason": self.reason,
+            "candidates": len(self.candidates),
+            "best_scores": [round(s, 4) for s in scores[:10]],
+            "verified": len(self.verified),
+            "verified_inliers": inliers[:20],
+            "best_inliers_tried": sorted(self.inliers_tried, reverse=True)[:10],
+            "consistent": len(self.consistent),
+            "consistent_stamps_ns": [list(c) for c in self.consistent],
+        }
+
+
+def angle_deg(a: FloatArray, b: FloatArray) -> float:
+    """Rotation angle (deg) between two poses."""
+    return float(np.rad2deg(rotation_angle_rad(a[:3, :3].T @ b[:3, :3])))

@@ -1,0 +1,125 @@
+"""Place recognition, verification, consistency and the drift-aware pair mean."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from postproc.merge.places import (
+    build_vocabulary,
+    candidate_noise,
+    consistent_candidates,
+    extract_features,
+    pair_drift_mean,
+    place_candidates,
+    refine_yaw_translation,
+    reprojection_errors,
+    triangulate_views,
+)
+from shared.geometry import invert_pose, make_pose, pose_difference, so3_exp
+from tests.postproc.merge import natural_scene
+
+
+def _rz(angle: float) -> np.ndarray:
+    return so3_exp([0.0, 0.0, angle])
+
+
+def test_refine_yaw_translation_recovers_a_gravity_aligned_transform():
+    rng = np.random.default_rng(3)
+    truth = make_pose(_rz(0.8), [1.5, -2.0, 0.3])
+    query_in_b = make_pose(so3_exp([1.7, 0.1, 0.2]), [0.4, 0.2, -1.0])
+    cam_from_a = invert_pose(truth @ query_in_b)
+    points_cam = np.column_stack((rng.uniform(-1, 1, (60, 2)), rng.uniform(1.5, 4.0, 60)))
+    points_a = (points_cam - cam_from_a[:3, 3]) @ cam_from_a[:3, :3]
+    rays = points_cam[:, :2] / points_cam[:, 2:3]
+    rays[:5] += 0.2  # gross outliers: the Huber weights keep them from pulling
+    start = make_pose(so3_exp([0.02, -0.01, 0.85]), [1.4, -1.9, 0.35])
+    found = refine_yaw_translation(points_a, rays, query_in_b, start)
+    rotation, translation = pose_difference(found, truth)
+    assert rotation < 1e-4 and translation < 1e-4
+    assert np.allclose(found[:3, 2], [0, 0, 1])  # no tilt: both frames gravity-aligned
+    errors = reprojection_errors(points_a, rays, invert_pose(found @ query_in_b))
+    assert np.count_nonzero(errors < 1e-4) >= 55
+
+
+def test_triangulate_views_and_reprojection_behind_camera():
+    point = np.array([0.3, -0.2, 3.0])
+    poses = [make_pose(np.eye(3), [-x, 0.0, 0.0]) for x in (0.0, 0.3, 0.6)]
+    rays = np.array([(point[:2] + p[:2, 3]) / point[2] for p in poses])
+    assert np.allclose(triangulate_views(poses, rays), point)
+    behind = reprojection_errors(np.array([[0.0, 0.0, -1.0]]), np.zeros((1, 2)), np.eye(4))
+    assert np.isinf(behind[0])
+
+
+def test_consistent_candidates_keep_the_agreeing_group():
+    rng = np.random.default_rng(0)
+    truth = make_pose(_rz(0.4), [2.0, 1.0, 0.0])
+    good = [
+        make_pose(
+            so3_exp(rng.normal(0, 0.002, 3)) @ truth[:3, :3], truth[:3, 3] + rng.normal(0, 0.02, 3)
+        )
+        for _ in range(8)
+    ]
+    wrong = [make_pose(_rz(a), [x, -1.0, 0.0]) for a, x in ((1.5, 0.0), (-0.7, 3.0), (2.5, 5.0))]
+    poses = np.array(good + wrong)
+    group = consistent_candidates(
+        poses, np.ones(len(poses)), rotation_rad=np.deg2rad(1.5), translation_m=0.25
+    )
+    assert group.tolist() == [True] * 8 + [False] * 3
+    assert consistent_candidates(
+        np.zeros((0, 4, 4)), np.zeros(0), rotation_rad=1, translation_m=1
+    ).shape == (0,)
+
+
+def test_pair_drift_mean_leans_on_the_earliest_places():
+    truth = make_pose(_rz(0.3), [1.0, 2.0, 0.0])
+    # One candidate at the two session starts (no drift yet), later ones drifted.
+    times_a = np.array([0.0, 100.0, 150.0, 200.0])
+    times_b = np.array([0.0, 120.0, 160.0, 220.0])
+    poses = np.array(
+        [truth] + [make_pose(_rz(0.3 + 0.01 * k), [1.0 + 0.05 * k, 2.0, 0.0]) for k in (1, 2, 3)]
+    )
+    rate = np.array([np.deg2rad(0.02) ** 2] * 3 + [0.003**2] * 3)
+    noise = np.array([np.deg2rad(0.01) ** 2] * 3 + [0.001**2] * 3)
+    pose, covariance = pair_drift_mean(
+        poses, times_a, times_b, rate_a=rate, rate_b=rate, noise=noise, start=poses[1]
+    )
+    rotation, translation = pose_difference(pose, truth)
+    assert rotation < np.deg2rad(0.02) and translation < 0.005
+    # Only the first candidate's noise is left: the later ones carry drift it does not.
+    assert np.sqrt(covariance[3, 3]) < 0.0011
+    plain = np.mean(poses[:, :3, 3], axis=0)
+    assert np.linalg.norm(plain - truth[:3, 3]) > 0.05
+
+
+def test_candidate_noise_from_near_simultaneous_neighbours():
+    rng = np.random.default_rng(5)
+    residuals = rng.normal(0, 0.01, (400, 6))
+    times = np.arange(400.0)
+    variance = candidate_noise(residuals, times, times, floor=np.full(6, 1e-8))
+    assert np.allclose(np.sqrt(variance), 0.01, rtol=0.15)
+    few = candidate_noise(residuals[:2], times[:2], times[:2], floor=np.full(6, 1e-6))
+    assert np.allclose(few, 1e-4)
+
+
+def test_vocabulary_scores_the_same_wreck_above_another():
+    cam = natural_scene.camera()
+    rng = np.random.default_rng(1)
+    same_wreck = [natural_scene.texture(11), natural_scene.texture(12)]
+    other_wreck = [natural_scene.texture(13), natural_scene.texture(14)]
+    views = []
+    for textures, x, d in (
+        (same_wreck, 0.0, 2.0),
+        (same_wreck, 0.3, 2.3),
+        (other_wreck, 0.0, 2.0),
+    ):
+        pose = natural_scene.look_at_wall(x, d, 0.05)
+        image = natural_scene.render(cam, pose, (textures[0], textures[1]), rng)
+        views.append(extract_features(image, 800)[1])
+    vocabulary = build_vocabulary(views, words=200, sample=3000, seed=0)
+    vectors = vocabulary.vectors([vocabulary.assign(d) for d in views])
+    candidates = place_candidates(vectors[1:2], vectors[[0, 2]], per_query=2, min_score=0.0)
+    assert candidates[0][1] == 0 and candidates[0][2] > candidates[1][2]
+    with pytest.raises(ValueError, match="descriptors for"):
+        build_vocabulary([views[0][:10]], words=200, sample=100, seed=0)
+    assert place_candidates(vectors[:0], vectors, per_query=1, min_score=0.0) == []
