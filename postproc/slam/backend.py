@@ -30,13 +30,15 @@ lens model), scaled by the focal length so that the noise is in pixels: the
 factors use a distortion-free `Cal3_S2(f, f, 0, 0, 0)`.
 
 Blind keyframes (no projection factor: open water) are counted; the estimator
-keeps them sparse (issue #7). Every state has a prior of its own (the first
-keyframe's pose, velocity and biases; a weak one on every later velocity), and
-the bias random walks are floored, so the system is never singular by
-construction. Should ISAM2 still find it indeterminate (poorly conditioned),
-`add_keyframe` rebuilds it from all its factors with weak priors on the state
-GTSAM names (or without the landmark it names, and each further landmark it
-names), then once more with QR factorisation, instead of failing; the
+keeps them sparse (issue #7). Every state is anchored: the first keyframe's
+pose, velocity and biases by priors, every later keyframe's through the IMU
+factor chain (which ties pose, velocity and biases to the previous ones), and
+every velocity also by a weak prior of its own; the bias random walks are
+floored. So the system is never singular by construction. Should ISAM2 still
+find it indeterminate (poorly conditioned), `add_keyframe` rebuilds it from all
+its factors with weak priors on the state GTSAM names (or without the landmark
+it names, and each further landmark it names), then once more with QR
+factorisation, instead of failing; the
 trajectory is kept and `stats.recovered_updates` / `stats.qr_fallbacks` count
 these. What still fails raises StageError, and the estimator starts a new map
 segment.
