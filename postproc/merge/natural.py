@@ -24,6 +24,7 @@ from postproc.merge.places import (
     PairEvidence,
     PlaceOptions,
     build_vocabulary,
+    candidate_clusters,
     candidate_noise,
     consistent_candidates,
     extract_features,
@@ -147,7 +148,13 @@ def _match_pair(
             evidence.inliers_tried.append(0)
             continue
         result, _, inliers = verify_candidate(
-            query, pose_b[query.stamp_ns], maps[d], options, focal_px=focal
+            query,
+            pose_b[query.stamp_ns],
+            maps[d],
+            options,
+            focal_px=focal,
+            reference=reference,
+            session_a_from_reference=pose_a[reference.stamp_ns],
         )
         evidence.inliers_tried.append(inliers)
         if result is None:
@@ -184,7 +191,8 @@ def _match_pair(
         [np.deg2rad(options.noise_floor_rotation_deg) ** 2] * 3
         + [options.noise_floor_translation_m**2] * 3
     )
-    noise = candidate_noise(pose_residuals(chosen, start), times_a, times_b, floor=floor)
+    clusters = candidate_clusters(times_a, times_b, gap_s=options.place_gap_s)
+    noise, shared = candidate_noise(pose_residuals(chosen, start), clusters, floor=floor)
     pose, covariance = pair_drift_mean(
         chosen,
         times_a,
@@ -193,6 +201,8 @@ def _match_pair(
         rate_b=drift_rates[b.name],
         noise=noise,
         start=start,
+        clusters=clusters,
+        shared_noise=shared,
     )
     # Roll and pitch come from gravity, not from the images (`refine_yaw_translation`).
     covariance[0, 0] = covariance[1, 1] = tilt_variance_rad2

@@ -7,6 +7,7 @@ import pytest
 
 from postproc.merge.places import (
     build_vocabulary,
+    candidate_clusters,
     candidate_noise,
     consistent_candidates,
     extract_features,
@@ -92,14 +93,20 @@ def test_pair_drift_mean_leans_on_the_earliest_places():
     assert np.linalg.norm(plain - truth[:3, 3]) > 0.05
 
 
-def test_candidate_noise_from_near_simultaneous_neighbours():
+def test_candidate_noise_splits_place_and_candidate_errors():
     rng = np.random.default_rng(5)
-    residuals = rng.normal(0, 0.01, (400, 6))
-    times = np.arange(400.0)
-    variance = candidate_noise(residuals, times, times, floor=np.full(6, 1e-8))
-    assert np.allclose(np.sqrt(variance), 0.01, rtol=0.15)
-    few = candidate_noise(residuals[:2], times[:2], times[:2], floor=np.full(6, 1e-6))
-    assert np.allclose(few, 1e-4)
+    # 40 places 30 s apart, 10 candidates each 1 s apart: a shared error per place
+    # (2 cm) plus each candidate's own (1 cm).
+    times = np.concatenate([30.0 * k + np.arange(10.0) * 0.5 for k in range(40)])
+    clusters = candidate_clusters(times, times + 3.0, gap_s=5.0)
+    assert len(np.unique(clusters)) == 40 and clusters.tolist()[:11] == [0] * 10 + [1]
+    residuals = np.repeat(rng.normal(0, 0.02, (40, 6)), 10, axis=0)
+    residuals += rng.normal(0, 0.01, (400, 6))
+    independent, shared = candidate_noise(residuals, clusters, floor=np.full(6, 1e-8))
+    assert np.allclose(np.sqrt(independent), 0.01, rtol=0.2)
+    assert np.allclose(np.sqrt(shared), 0.02, rtol=0.35)
+    few = candidate_noise(residuals[:2], clusters[:2], floor=np.full(6, 1e-6))
+    assert np.allclose(few[0], 1e-4) and np.allclose(few[1], 1e-4)
 
 
 def test_vocabulary_scores_the_same_wreck_above_another():
