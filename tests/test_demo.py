@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)
+@pytest.mark.timeout(2000)
 def test_reduced_demo(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     env = {**os.environ, "WRECKMAP_PROGRESS": "0", "PYTHONPATH": str(REPO)}
@@ -29,16 +29,18 @@ def test_reduced_demo(tmp_path: Path) -> None:
         "--dense-image-px", "160", "--depth-min-range-m", "0.2",
     ]  # fmt: skip
     # Its own process group, so that a timeout stops the simulator and the pipeline too.
+    # The limit is a hang guard: about 4 minutes on two quiet cores, 9 with other jobs
+    # holding the machine (load 9), so 30 minutes means something is stuck.
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
         start_new_session=True,
     )  # fmt: skip
     try:
-        stdout, stderr = process.communicate(timeout=560)
+        stdout, stderr = process.communicate(timeout=1800)
     except subprocess.TimeoutExpired:
         os.killpg(process.pid, signal.SIGKILL)
         stdout, stderr = process.communicate()
-        pytest.fail(f"the reduced demo took over 560 s:\n{stdout[-3000:]}")
+        pytest.fail(f"the reduced demo did not end within 1800 s:\n{stdout[-3000:]}")
     result = subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
     log = result.stdout + result.stderr
     # The real intake paths ran: the dive computer over a pty, the GoPro import.
