@@ -1,4 +1,5 @@
-"""`wreckmap-post merge`: several SLAM sessions in one frame through AprilGrid targets."""
+"""`wreckmap-post merge`: several SLAM sessions in one frame through AprilGrid targets
+and the structure they share."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ example:
   wreckmap-post merge results/dive1/slam results/dive2/slam \\
       --targets targets/bow.yaml targets/midship.yaml --out results/merged
   wreckmap-post merge dive1/ dive2/ --targets bow.yaml --out merged/ --method paper
+  wreckmap-post merge dive1/slam dive2/slam --out merged/      # no targets: the wreck itself
 
 Each target is a Kalibr AprilGrid YAML plus `tagIdOffset` (the id of its
 first tag) when two grids share the wreck; the file stem names the target.
@@ -17,28 +19,40 @@ The first folder (or --reference) defines the common frame W. Sessions with a
 depth stage output beside them (depth/trajectory_world_fused.tum) are aligned
 in 4 DoF (x, y, z, yaw), others in 6 DoF. Writes transforms.json (T_W_S and
 its 6x6 covariance per session), targets.json, <session>/keyframes_merged.tum,
-merge_top.png and merge_side.png. Sessions sharing no target are reported
-with "placed": false and left for the SfM stage.
+merge_top.png and merge_side.png. Every pair of sessions is also matched
+through the structure both filmed (keyframe features, a vocabulary built from
+the sessions, PnP with gravity, a consistency check), and all constraints
+(targets, feature matches, gravity, depth) are solved together; transforms.json
+then lists the evidence per pair and the residual per constraint. A session
+with no chain of targets or consistent matches to the reference is reported
+with "placed": false and the evidence; it is never merged on a guess.
 """
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "merge",
-        help="put several sessions into one frame through AprilGrid targets",
+        help="put several sessions into one frame through targets and shared structure",
         description="Detect AprilGrid targets in the keyframes of every session, average\n"
-        "their poses robustly and estimate each session's pose in a common frame.",
+        "their poses robustly, match the sessions through the structure they share and\n"
+        "estimate each session's pose in a common frame from all constraints together.",
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("slam_dirs", nargs="+", type=Path, metavar="SLAM_DIR")
     parser.add_argument(
         "--targets",
-        nargs="+",
-        required=True,
+        nargs="*",
+        default=[],
         type=Path,
         metavar="TARGET_YAML",
-        help="Kalibr AprilGrid YAMLs (with tagIdOffset for a second grid)",
+        help="Kalibr AprilGrid YAMLs (with tagIdOffset for a second grid); optional with "
+        "natural features",
+    )
+    parser.add_argument(
+        "--no-natural-features",
+        action="store_true",
+        help="targets only, placed session by session (no matching through the wreck itself)",
     )
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument(
@@ -120,6 +134,7 @@ def _merge(args: argparse.Namespace) -> int:
         outlier_rule=args.outlier_rule,
         drift_weighting=not args.no_drift_weighting,
         tilt_sigma_deg=args.tilt_sigma_deg,
+        natural_features=not args.no_natural_features,
         camera=args.camera,
         plot=not args.no_plot,
     )

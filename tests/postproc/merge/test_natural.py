@@ -1,0 +1,108 @@
+"""Merging without targets: through the structure two dives share, and never without it."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from postproc.merge.places import PlaceOptions
+from postproc.merge.stage import MergeOptions, run
+from shared.geometry import invert_pose, make_pose, pose_difference, so3_exp
+from tests.postproc.merge import natural_scene
+
+REPO = Path(__file__).resolve().parents[3]
+# Session frames in the world: gravity-aligned (yaw and an offset), as VI-SLAM defines them.
+WORLD_FROM = {
+    "a": make_pose(so3_exp([0.0, 0.0, 0.3]), [-3.0, 2.0, -1.5]),
+    "b": make_pose(so3_exp([0.0, 0.0, -1.1]), [2.0, 2.5, -1.5]),
+    "c": make_pose(so3_exp([0.0, 0.0, 2.0]), [1.0, 2.0, -1.5]),
+}
+
+
+@pytest.fixture(scope="module")
+def dives(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """a and b film the same wreck (textures 1, 2) from different routes; c another one."""
+    root = tmp_path_factory.mktemp("natural")
+    return {
+        "a": natural_scene.write_session(
+            root / "a",
+            texture_seeds=(1, 2),
+            xs_m=np.linspace(-3, 3, 10),
+            distance_m=2.0,
+            world_from_session=WORLD_FROM["a"],
+            seed=1,
+        ),
+        "b": natural_scene.write_session(
+            root / "b",
+            texture_seeds=(1, 2),
+            xs_m=np.linspace(2, -2, 9),
+            distance_m=2.4,
+            world_from_session=WORLD_FROM["b"],
+            seed=2,
+        ),
+        "c": natural_scene.write_session(
+            root / "c",
+            texture_seeds=(7, 8),
+            xs_m=np.linspace(-3, 3, 10),
+            distance_m=2.0,
+            world_from_session=WORLD_FROM["c"],
+            seed=3,
+        ),
+    }
+
+
+def _options() -> MergeOptions:
+    return MergeOptions(plot=False, places=PlaceOptions(vocabulary_words=500))
+
+
+def test_sessions_sharing_structure_merge_and_others_are_refused(dives, tmp_path):
+    out = tmp_path / "out"
+    document = json.loads(run(_options(), list(dives.values()), [], out).read_text())
+    assert document["estimator"] == "joint"
+    b = document["sessions"]["b"]
+    assert b["placed"] and b["via"] == ["a"]
+    expected = invert_pose(WORLD_FROM["a"]) @ WORLD_FROM["b"]
+    rotation, translation = pose_difference(np.array(b["T_W_S"]), expected)
+    assert np.rad2deg(rotation) < 0.5 and translation < 0.04
+    # The reported uncertainty is of the size of the error, not far below it.
+    assert np.rad2deg(rotation) < 4 * b["sigma_rotation_deg"]
+    assert translation < 4 * b["sigma_translation_m"]
+    pairs = {tuple(p["sessions"]): p for p in document["pairs"]}
+    assert pairs["a", "b"]["mergeable"] and pairs["a", "b"]["consistent"] >= 3
+    # c filmed another wreck: candidates come up (some word overlap always does), none
+    # survives verification, so it is reported, not merged.
+    for pair in (("a", "c"), ("b", "c")):
+        evidence = pairs[pair]
+        assert evidence["candidates"] > 0 and not evidence["mergeable"]
+        assert evidence["consistent"] < 3 and "needed" in evidence["reason"]
+    c = document["sessions"]["c"]
+    assert c["placed"] is False and "evidence" in c["reason"]
+    assert not (out / "c").exists()
+    [constraint] = document["constraints"]
+    assert constraint["kind"] == "features" and constraint["label"] == "a-b"
+    assert constraint["weight"] == 1.0 and constraint["whitened_norm"] < 4.1
+
+
+def test_cli_merges_without_targets(dives, tmp_path):
+    env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
+    command = [sys.executable, "-m", "postproc.cli", "merge", str(dives["a"]), str(dives["b"])]
+    command += ["--out", str(tmp_path / "out"), "--no-plot"]
+    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    document = json.loads((tmp_path / "out" / "transforms.json").read_text())
+    assert document["sessions"]["b"]["placed"]
+    refused = subprocess.run(
+        [*command[:-3], "--out", str(tmp_path / "x"), "--no-natural-features"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert refused.returncode == 1 and "no target YAML" in refused.stderr
