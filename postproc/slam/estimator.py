@@ -17,15 +17,18 @@ motion the buffered keyframes wait for the visual-inertial alignment (or, after
 keyframe and is retried at the next. Should the smoother fail for good later
 on, the keyframes so far become a finished map segment and a new segment starts
 at the failing keyframe from the IMU prediction of the last state, so the
-trajectory stays whole (`stats["map_segments"]`; loops are closed within a
-segment, not yet across segments).
+trajectory stays whole (`stats["map_segments"]`); a loop from a later segment
+to a keyframe of an earlier one joins them in a final pose graph
+(`stats["segment_loops"]`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -46,7 +49,7 @@ from postproc.slam.loop_closure import Descriptors, LoopClosureOptions, LoopDete
 from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
 from shared.calibration.kalibr import ImuNoise
 from shared.errors import StageError
-from shared.geometry import make_pose, so3_exp, so3_log
+from shared.geometry import invert_pose, make_pose, so3_exp, so3_log
 
 LOG = logging.getLogger(__name__)
 
@@ -82,6 +85,9 @@ class EstimatorOptions:
         to `rest_velocity_sigma_m_s`. A start in motion waits for the alignment instead.
     rest_max_gyro_std_rad_s / rest_max_accel_std_m_s2: the spread of the IMU samples
         below which the body counts as resting (see `imu_stillness`).
+    segment_join_rotation_sigma_rad / segment_join_translation_sigma_m: how loosely the
+        final pose graph holds the IMU-predicted step from one map segment to the next
+        when a loop closes between segments.
     rest_lookback_s: a rest that ended up to this long before the first keyframe (a
         recording that starts at rest, the camera's first frame coming later) still
         starts the estimate: the IMU carries the rest's attitude and zero velocity to the
@@ -115,6 +121,8 @@ class EstimatorOptions:
     rest_max_gyro_std_rad_s: float = 0.01
     rest_max_accel_std_m_s2: float = 0.1
     rest_velocity_sigma_m_s: float = 0.02
+    segment_join_rotation_sigma_rad: float = 0.05
+    segment_join_translation_sigma_m: float = 0.5
     rest_lookback_s: float = 2.0
     rest_velocity_growth_m_s2: float = 0.2
     blind_keyframe_interval_s: float = 5.0
@@ -156,6 +164,13 @@ class _Segment:
     landmark_ids: IntArray
     landmarks_s: FloatArray
     counters: dict[str, int]
+    _lookup: dict[int, FloatArray] | None = None
+
+    def landmark(self, track_id: int) -> FloatArray | None:
+        """Position in S (3,) of the segment's landmark of `track_id`, None if none."""
+        if self._lookup is None:
+            self._lookup = dict(zip(self.landmark_ids.tolist(), self.landmarks_s, strict=True))
+        return self._lookup.get(int(track_id))
 
 
 class SlamEstimator:
@@ -182,6 +197,8 @@ class SlamEstimator:
         self._segments: list[_Segment] = []
         self._segment_start = 0  # global keyframe index of the backend's keyframe 0
         self._segment_failures: list[str] = []
+        # Loops from a keyframe to one of a finished segment: (old, new, T_Bold_Bnew).
+        self._segment_loops: list[tuple[int, int, FloatArray]] = []
         self._init_failures: list[str] = []
         self._shift_ns = round(options.timeshift_cam_imu_s * 1e9)
         self._frame_stamps: list[int] = []
@@ -328,8 +345,8 @@ class SlamEstimator:
     def _close_loops(self, index: int) -> None:
         """Verify loop candidates for keyframe `index` (global); add the first verified one.
 
-        Only keyframes of the running map segment are candidates (the smoother holds
-        no states of the earlier ones).
+        A loop within the running map segment enters the smoother; one to a keyframe
+        of a finished segment is kept for the final pose graph (`_join_segments`).
         """
         backend = self.backend
         start = self._segment_start
@@ -341,7 +358,22 @@ class SlamEstimator:
         poses += backend.cached_poses()
         for old in self.loops.candidates(index, poses):
             if old < start:
-                continue
+                # A keyframe of a finished segment: the loop joins the two segments in
+                # the final pose graph (`finish`).
+                segment = self._segment_of(old)
+                loop = self.loops.verify(
+                    old,
+                    index,
+                    old_session_from_body=segment.states[
+                        old - segment.first_keyframe
+                    ].session_from_body,
+                    landmark=segment.landmark,
+                )
+                if loop is None:
+                    continue
+                self._segment_loops.append((old, index, loop.old_from_new))
+                self.loop_closures.append((old, index, loop.inliers))
+                return
             loop = self.loops.verify(
                 old,
                 index,
@@ -360,6 +392,13 @@ class SlamEstimator:
             )
             self.loop_closures.append((old, index, loop.inliers))
             return
+
+    def _segment_of(self, keyframe: int) -> _Segment:
+        """The finished segment holding global keyframe `keyframe`."""
+        for segment in self._segments:
+            if segment.first_keyframe <= keyframe < segment.first_keyframe + len(segment.states):
+                return segment
+        raise IndexError(f"keyframe {keyframe} is in no finished segment")
 
     def _try_start(self, *, force: bool = False) -> None:
         """Start the backend at the first buffered keyframe once the start is known.
@@ -633,6 +672,8 @@ class SlamEstimator:
         if backend.num_keyframes:
             backend.finish()
         states = [s for seg in self._segments for s in seg.states] + backend.keyframe_states()
+        if self._segment_loops:
+            states = self._join_segments(states)
         kf_index = self._keyframe_frame_index[: len(states)]
         first_frame = kf_index[0]
         kf_stamps_cam = np.array([self._frame_stamps[i] for i in kf_index], dtype=np.int64)
@@ -660,6 +701,7 @@ class SlamEstimator:
             "loop_attempts": self.loops.attempts,
             "keyframe_reasons": dict(self._reasons),
             "map_segments": len(self._segments) + (1 if backend.num_keyframes else 0),
+            "segment_loops": len(self._segment_loops),
             "segment_failures": "; ".join(self._segment_failures),
             "init_failures": "; ".join(self._init_failures),
             **self.init_report,
@@ -676,6 +718,66 @@ class SlamEstimator:
             landmarks_s=points,
             stats=stats,
         )
+
+    def _join_segments(self, states: list[KeyframeState]) -> list[KeyframeState]:
+        """Keyframe poses after a pose graph over every segment and the loops between them.
+
+        Consecutive keyframes of one segment keep their relative pose (the backend's
+        pose-graph sigmas); the step from one segment to the next, an IMU prediction,
+        gets the loose `segment_join_*` sigmas; loops are robust (Cauchy). Velocities
+        turn with their keyframes. On failure the poses are kept as they were.
+        """
+        import gtsam
+
+        o = self.options
+        b = o.backend
+        lc = o.loop_closure
+        X = gtsam.symbol_shorthand.X
+        starts = {seg.first_keyframe for seg in self._segments[1:]} | {self._segment_start}
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        graph.add(
+            gtsam.PriorFactorPose3(
+                X(0),
+                gtsam.Pose3(states[0].session_from_body),
+                gtsam.noiseModel.Isotropic.Sigma(6, 1e-6),
+            )
+        )
+
+        def sigmas(rotation_rad: float, translation_m: float) -> Any:
+            return gtsam.noiseModel.Diagonal.Sigmas(
+                np.concatenate([np.full(3, rotation_rad), np.full(3, translation_m)])
+            )
+
+        within = sigmas(b.pose_graph_rotation_sigma_rad, b.pose_graph_translation_sigma_m)
+        across = sigmas(o.segment_join_rotation_sigma_rad, o.segment_join_translation_sigma_m)
+        for k, state in enumerate(states):
+            values.insert(X(k), gtsam.Pose3(state.session_from_body))
+            if k:
+                relative = invert_pose(states[k - 1].session_from_body) @ state.session_from_body
+                noise = across if k in starts else within
+                graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), gtsam.Pose3(relative), noise))
+        for old, new, old_from_new in self._segment_loops:
+            robust = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Cauchy.Create(lc.cauchy_k),
+                sigmas(lc.rotation_sigma_rad, lc.translation_sigma_m),
+            )
+            graph.add(gtsam.BetweenFactorPose3(X(old), X(new), gtsam.Pose3(old_from_new), robust))
+        try:
+            result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+        except RuntimeError as error:
+            LOG.warning("joining the map segments failed (%s); keeping them as they are", error)
+            return states
+        joined = []
+        for k, state in enumerate(states):
+            pose = result.atPose3(X(k)).matrix()
+            turn = pose[:3, :3] @ state.session_from_body[:3, :3].T
+            joined.append(
+                dataclasses.replace(
+                    state, session_from_body=pose, velocity_m_s=turn @ state.velocity_m_s
+                )
+            )
+        return joined
 
     def _frame_poses(self, states: list[KeyframeState], kf_idx: list[int]) -> FloatArray:
         """T_S_B at every frame: IMU prediction from the previous keyframe, its end error
