@@ -698,7 +698,8 @@ def pair_drift_mean(
     candidates' covariance is `q_a min(ta_i, ta_j) + q_b min(tb_i, tb_j) + c [same
     place] + s δ_ij`: candidate i carries a's drift at its reference keyframe and b's
     at its query (small-angle, axes independent). Returns (pose, diagonal 6x6
-    covariance, drift included).
+    covariance, drift included, scaled up by the a posteriori variance factor when
+    the candidates scatter more than the model allows).
     """
     n = poses.shape[0]
     ta = np.maximum(np.asarray(times_a_s, dtype=np.float64), 0.0)
@@ -723,7 +724,12 @@ def pair_drift_mean(
             solved = np.linalg.solve(sigma, np.column_stack((np.ones(n), r[:, k])))
             information = float(np.sum(solved[:, 0]))
             step[k] = float(np.sum(solved[:, 1])) / information
-            variance[k] = 1.0 / information
+            # A posteriori variance factor: when the candidates scatter more than the
+            # model says (chi-square per degree of freedom above 1), the mean is that
+            # much less certain; never tighter than the model.
+            about = r[:, k] - step[k]
+            factor = float(about @ np.linalg.solve(sigma, about)) / max(n - 1, 1)
+            variance[k] = max(factor, 1.0) / information
         mean = make_pose(so3_exp(step[:3]) @ mean[:3, :3], mean[:3, 3] + step[3:])
     return mean, np.diag(variance)
 
