@@ -209,6 +209,17 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
             ("2017-02-03T10:25:16", 198, 27.8),
         ],
     ),
+    # Subsurface's merges of test47.xml and test48.xml (either order): the
+    # divecomputer's own start, as in test47.xml.
+    "test47+48.xml": (IMPORTS, [("2015-10-05T08:45:25", 6, 13.716)]),
+    "test48+47.xml": (IMPORTS, [("2015-10-05T08:45:25", 6, 13.716)]),
+    # A trip holding two dives; air pressure per dive (not read, not in the way).
+    "TestAtmPress.xml": (
+        IMPORTS,
+        [("2019-04-09T09:15:16", 5, 4.488), ("2019-04-10T08:14:01", 10, 7.785)],
+    ),
+    # Heart rate and bearing on the samples; one sample above the surface (-0.019 m).
+    "test36.xml": (IMPORTS, [("2014-04-02T07:00:00", 444, 3.66)]),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
