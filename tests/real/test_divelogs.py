@@ -220,6 +220,9 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     ),
     # Heart rate and bearing on the samples; one sample above the surface (-0.019 m).
     "test36.xml": (IMPORTS, [("2014-04-02T07:00:00", 444, 3.66)]),
+    # The first format (<dives> root, <program> element, samples in <dive>); water
+    # temperatures jumping 5-35 C on purpose.
+    "test16.xml": (IMPORTS, [("2011-12-02T01:00:00", 887, 36.27)]),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
