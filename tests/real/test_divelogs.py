@@ -223,6 +223,7 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     # The first format (<dives> root, <program> element, samples in <dive>); water
     # temperatures jumping 5-35 C on purpose.
     "test16.xml": (IMPORTS, [("2011-12-02T01:00:00", 887, 36.27)]),
+    "test17.xml": (IMPORTS, [("2011-12-02T10:00:00", 887, 36.27)]),  # test16, narrow temps
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
