@@ -53,7 +53,9 @@ def session_features(options: PlaceOptions, session: Any) -> list[KeyframeFeatur
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise InputError(f"{path}: cannot read the keyframe image")
-        pixels, descriptors = extract_features(image, options.features_per_keyframe)
+        pixels, descriptors = extract_features(
+            image, options.features_per_keyframe, levels=options.orb_levels
+        )
         rays = session.camera.unproject(pixels)[:, :2] if len(pixels) else np.zeros((0, 2))
         finite = np.all(np.isfinite(rays), axis=1)
         out.append(KeyframeFeatures(int(stamp), pixels[finite], rays[finite], descriptors[finite]))

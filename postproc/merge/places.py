@@ -52,7 +52,8 @@ IntArray = npt.NDArray[np.int64]
 class PlaceOptions:
     """Settings of natural-feature merging.
 
-    features_per_keyframe: ORB keypoints per keyframe image.
+    features_per_keyframe: ORB keypoints per keyframe image; orb_levels: their pyramid
+        levels (`extract_features`).
     vocabulary_words: words of the k-majority vocabulary (fewer for small surveys: at
         least 20 sampled descriptors per word); vocabulary_sample: descriptors
         drawn (over all sessions) to build it; seed: its random generator.
@@ -86,6 +87,7 @@ class PlaceOptions:
     """
 
     features_per_keyframe: int = 1000
+    orb_levels: int = 8
     vocabulary_words: int = 4000
     vocabulary_sample: int = 20000
     seed: int = 0
@@ -121,11 +123,17 @@ class KeyframeFeatures:
     words: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
-def extract_features(image: UInt8Array, count: int) -> tuple[FloatArray, UInt8Array]:
-    """ORB keypoints (N, 2) pixels and descriptors (N, 32) of a grayscale image."""
+def extract_features(
+    image: UInt8Array, count: int, *, levels: int = 8
+) -> tuple[FloatArray, UInt8Array]:
+    """ORB keypoints (N, 2) pixels and descriptors (N, 32) of a grayscale image.
+
+    levels: pyramid levels (scale 1.2 each); a keypoint of level l is located to
+    about 1.2^l pixels, so fewer levels mean sharper geometry and less scale range.
+    """
     import cv2
 
-    orb = cv2.ORB_create(nfeatures=count, fastThreshold=10)
+    orb = cv2.ORB_create(nfeatures=count, fastThreshold=10, nlevels=levels)
     keypoints, descriptors = orb.detectAndCompute(image, None)
     if descriptors is None or not keypoints:
         return np.zeros((0, 2)), np.zeros((0, 32), dtype=np.uint8)
