@@ -472,6 +472,12 @@ class SlamEstimator:
                 "init_rest_before_first_keyframe_s": before_s,
                 "init_gyro_bias_rad_s": float(np.linalg.norm(rest.gyro_mean_rad_s)),
                 "init_accel_bias_along_gravity_m_s2": float(np.linalg.norm(accel_bias)),
+                # The noise model beside what the still IMU shows (an upper bound): a
+                # density far above it leaves the scale to the images alone.
+                "imu_accel_noise_density_configured": self._imu_noise.accelerometer_noise_density,
+                "imu_accel_noise_density_at_rest_at_most": rest.accel_noise_density,
+                "imu_gyro_noise_density_configured": self._imu_noise.gyroscope_noise_density,
+                "imu_gyro_noise_density_at_rest_at_most": rest.gyro_noise_density,
                 "init_speed_m_s": float(np.linalg.norm(velocity)),
             }
             self.backend.start(

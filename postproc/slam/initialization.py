@@ -92,6 +92,10 @@ class ImuStillness:
     accel_mean_m_s2 (3,): mean specific force (at rest: gravity, up, in the body frame).
     gyro_bias_sigma_rad_s: uncertainty of `gyro_mean_rad_s` as a bias: the standard
         error of the mean, floored (a hand-held "rest" still turns a little).
+    accel_noise_density / gyro_noise_density: upper bounds on the white noise the
+        spread shows (per-sample deviation times the square root of the sample
+        interval; m/s^2/sqrt(Hz), rad/s/sqrt(Hz)): tremor adds to them. NaN when not
+        still. Evidence beside the noise model, which they do not change.
     """
 
     still: bool
@@ -101,6 +105,8 @@ class ImuStillness:
     accel_mean_m_s2: FloatArray
     accel_std_m_s2: float
     gyro_bias_sigma_rad_s: float
+    accel_noise_density: float = float("nan")
+    gyro_noise_density: float = float("nan")
 
 
 def imu_stillness(
@@ -147,8 +153,18 @@ def imu_stillness(
         and float(np.linalg.norm(gyro_mean)) <= max_gyro_rad_s
     )
     sigma = max(3.0 * gyro_std / np.sqrt(n), gyro_bias_floor_rad_s)
+    root_dt = float(np.sqrt(duration_s / (n - 1)))
+    nan = float("nan")
     return ImuStillness(
-        bool(still), duration_s, gyro_mean, gyro_std, accel.mean(axis=0), accel_std, sigma
+        still=bool(still),
+        duration_s=duration_s,
+        gyro_mean_rad_s=gyro_mean,
+        gyro_std_rad_s=gyro_std,
+        accel_mean_m_s2=accel.mean(axis=0),
+        accel_std_m_s2=accel_std,
+        gyro_bias_sigma_rad_s=sigma,
+        accel_noise_density=accel_std * root_dt if still else nan,
+        gyro_noise_density=gyro_std * root_dt if still else nan,
     )
 
 

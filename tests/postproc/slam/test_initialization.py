@@ -8,6 +8,7 @@ import pytest
 from postproc.slam.backend import BackendOptions, VisualInertialBackend
 from postproc.slam.initialization import (
     align_visual_inertial,
+    imu_stillness,
     is_still,
     mean_specific_force,
     preintegrate,
@@ -137,3 +138,32 @@ def test_backend_recovers_an_indeterminate_imu_only_chain() -> None:
     assert backend.num_keyframes == len(frames) + 1
     assert backend.stats.blind_keyframes == len(frames)
     assert np.all(np.isfinite(backend.session_from_body(backend.num_keyframes - 1)))
+
+
+def test_imu_stillness_sees_rest_its_bias_and_noise_and_not_a_turn() -> None:
+    rng = np.random.default_rng(2)
+    stamps = 10**18 + np.arange(0, 2_000_000_000, 5_000_000, dtype=np.int64)  # 200 Hz, 2 s
+    t_s = (stamps - stamps[0]) * 1e-9
+    bias = np.array([0.004, -0.002, 0.003])
+    gyro = bias + 0.002 * rng.standard_normal((len(t_s), 3))
+    accel = np.array([0.3, -9.7, 0.5]) + 0.01 * rng.standard_normal((len(t_s), 3))
+    moving = t_s >= 1.0  # the hand starts to move after 1 s
+    gyro[moving] += 0.5 * np.sin(3.0 * t_s[moving])[:, None]
+    accel[moving] += 1.0 * np.sin(4.0 * t_s[moving])[:, None]
+    imu = ImuSamples(stamps, gyro, accel)
+    rest = imu_stillness(imu, int(stamps[0]), int(stamps[0]) + 950_000_000)
+    assert rest.still
+    np.testing.assert_allclose(rest.gyro_mean_rad_s, bias, atol=3 * 0.002 / np.sqrt(190))
+    assert rest.gyro_bias_sigma_rad_s >= 1e-3
+    # Upper bounds on the white noise (the largest piece's spread): 0.002 and 0.01 per
+    # sample at 200 Hz are 1.4e-4 rad/s/sqrt(Hz) and 7.1e-4 m/s^2/sqrt(Hz).
+    assert 1.4e-4 <= rest.gyro_noise_density < 1.4e-4 * 1.3
+    assert 7.1e-4 * 0.95 <= rest.accel_noise_density < 7.1e-4 * 1.3
+    # The window's last quarter second moves: the pieces see it, the mean would not.
+    late = imu_stillness(imu, int(stamps[0]) + 250_000_000, int(stamps[0]) + 1_250_000_000)
+    assert not late.still and np.isnan(late.accel_noise_density)
+    # A steady turn has a small spread but is no rest.
+    turning = ImuSamples(stamps, np.tile([0.0, 0.0, 0.3], (len(t_s), 1)), accel)
+    assert not imu_stillness(turning, int(stamps[0]), int(stamps[0]) + 900_000_000).still
+    # Too little data is never rest.
+    assert not imu_stillness(imu, int(stamps[0]), int(stamps[0]) + 300_000_000).still
