@@ -3,6 +3,8 @@ the simulated wreck, and AprilGrid detection quality on the real photos.
 
     .venv/bin/python bench/bench_merge.py [--seeds 5] [--sessions 2] [--outliers 0.1]
     .venv/bin/python bench/bench_merge.py --scene fieldsim --seeds 8 [--cache DIR]
+    .venv/bin/python bench/bench_merge.py --scene fieldsim --every-keyframe --features \
+        --seeds 8 --no-photos --cache DIR
 
 Synthetic (`postproc.merge.synthetic.make_survey`): two grids like the Pamir's
 (4x2 and 5x4 tags of 88 mm, 10 m apart on a tilted deck), dives filming each
@@ -50,6 +52,17 @@ pitch (`MergeOptions.tilt_sigma_deg`), given the simulators' own per-session
 tilt (`SIM_TILT_SIGMA_DEG`), as a SLAM would report its roll/pitch uncertainty.
 A 4-DoF fit keeps the sessions' whole relative tilt (0.1 deg RMS here), a plain
 6-DoF fit all of the targets' tilt noise; the prior weighs the two.
+
+Natural features (`--scene fieldsim --every-keyframe --features`): keyframes at
+1 Hz along the whole dive (as a SLAM writes them, not only near the grids), and
+two more rows over the same folders and seeds: "features only (no targets)" (the
+target YAMLs are not given: place recognition, verification and the joint
+estimate alone) and "targets + features" (both in the joint estimate). A third
+error table, "where the maps share structure", is the overlay error of
+`T_S1_Sk` at keyframe pairs that film the same place (`shared_structure_references`),
+the natural-feature analogue of the at-targets error. With every keyframe the
+target rows see the grids from further and more obliquely than in the default
+scene, so their figures differ from a run without `--every-keyframe`.
 
 "floor: exact at 1st sight" (wreck only): `T_S1_Sk` from targets known exactly
 at each session's first sighting. The drift before it is in every later keyframe
