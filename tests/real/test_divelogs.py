@@ -224,6 +224,17 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     # temperatures jumping 5-35 C on purpose.
     "test16.xml": (IMPORTS, [("2011-12-02T01:00:00", 887, 36.27)]),
     "test17.xml": (IMPORTS, [("2011-12-02T10:00:00", 887, 36.27)]),  # test16, narrow temps
+    # Subsurface's reading of Suunto DM5's database (the DM4 test's first dive and
+    # three more), written in file order, not start order.
+    "TestDiveDM5.xml": (
+        IMPORTS,
+        [
+            ("2013-02-02T16:14:08", 179, 22.41),
+            ("2013-02-02T13:44:21", 184, 21.8),
+            ("2013-02-02T10:53:54", 199, 22.04),
+            ("2013-02-02T08:21:50", 183, 28.74),
+        ],
+    ),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
