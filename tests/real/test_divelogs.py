@@ -235,6 +235,9 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
             ("2013-02-02T08:21:50", 183, 28.74),
         ],
     ),
+    # Subsurface's V2 test file (a CCR dive, OSTC 3, unpadded date 2014-4-1), parsed by
+    # its testparse; 2-second samples 0:02 to 82:50.
+    "test40.xml": (IMPORTS, [("2014-04-01T10:00:00", 2485, 38.974)]),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
