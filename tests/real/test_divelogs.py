@@ -238,6 +238,8 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     # Subsurface's V2 test file (a CCR dive, OSTC 3, unpadded date 2014-4-1), parsed by
     # its testparse; 2-second samples 0:02 to 82:50.
     "test40.xml": (IMPORTS, [("2014-04-01T10:00:00", 2485, 38.974)]),
+    # Its V3 twin (divesites, a padded date a day later); the same samples.
+    "test42.xml": (IMPORTS, [("2014-04-02T10:00:00", 2485, 38.974)]),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
@@ -248,6 +250,9 @@ SAME_DIVES = {
     ("TestDiveDivingLog5.08.uddf",): "TestDiveDivelogsDE.xml",
     ("../shared/ostc.xml", "vyper.xml"): "mergedVyperOstc.xml",
 }
+
+# Files holding the same profile under two versions of Subsurface's format.
+SAME_PROFILE = [("test40.xml", "test42.xml"), ("test16.xml", "test17.xml")]
 
 
 def corpus_files() -> list[str]:
@@ -325,3 +330,11 @@ def test_corpus_same_dives_as_subsurface_read_them(names: tuple[str, ...], refer
             assert (a.model, a.serial) == (b.model, b.serial)
         np.testing.assert_array_equal(a.stamps_s, b.stamps_s)
         np.testing.assert_allclose(a.depth_m, b.depth_m, atol=1e-9)
+
+
+@pytest.mark.parametrize(("first", "second"), SAME_PROFILE)
+def test_corpus_same_profile_in_two_spellings(first: str, second: str) -> None:
+    (a,) = read_logbook(CORPUS / first)
+    (b,) = read_logbook(CORPUS / second)
+    np.testing.assert_array_equal(a.stamps_s - a.stamps_s[0], b.stamps_s - b.stamps_s[0])
+    np.testing.assert_array_equal(a.depth_m, b.depth_m)
