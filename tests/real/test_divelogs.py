@@ -240,6 +240,10 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     "test40.xml": (IMPORTS, [("2014-04-01T10:00:00", 2485, 38.974)]),
     # Its V3 twin (divesites, a padded date a day later); the same samples.
     "test42.xml": (IMPORTS, [("2014-04-02T10:00:00", 2485, 38.974)]),
+    # Subsurface's reading of test-apd-inspiration.uddf (not copied, 896 kB): one dive
+    # (the UDDF's placeholder dive is not one), samples partly out of time order
+    # (19:00 before 18:59) and repeated, as the APD logger wrote them.
+    "test-apd-inspiration-reference.xml": (IMPORTS, [("2022-04-24T10:30:58", 695, 60.2)]),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
