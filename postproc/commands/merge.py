@@ -49,10 +49,17 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="Kalibr AprilGrid YAMLs (with tagIdOffset for a second grid); optional with "
         "natural features",
     )
-    parser.add_argument(
+    features = parser.add_mutually_exclusive_group()
+    features.add_argument(
         "--no-natural-features",
         action="store_true",
         help="targets only, placed session by session (no matching through the wreck itself)",
+    )
+    features.add_argument(
+        "--natural-features",
+        action="store_true",
+        help="always match through the wreck and estimate jointly with the targets (default: "
+        "only when the targets leave a session unplaced or none are given)",
     )
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument(
@@ -134,7 +141,9 @@ def _merge(args: argparse.Namespace) -> int:
         outlier_rule=args.outlier_rule,
         drift_weighting=not args.no_drift_weighting,
         tilt_sigma_deg=args.tilt_sigma_deg,
-        natural_features=not args.no_natural_features,
+        natural_features=(
+            False if args.no_natural_features else True if args.natural_features else "auto"
+        ),
         camera=args.camera,
         plot=not args.no_plot,
     )
