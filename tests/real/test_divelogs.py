@@ -244,6 +244,22 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     # (the UDDF's placeholder dive is not one), samples partly out of time order
     # (19:00 before 18:59) and repeated, as the APD logger wrote them.
     "test-apd-inspiration-reference.xml": (IMPORTS, [("2022-04-24T10:30:58", 695, 60.2)]),
+    # Subsurface's reading of Seabear H3 and T1 CSV logs: the same four or five dives
+    # from two computers (same starts, told apart by model), one a 1-second freedive.
+    "TestDiveSeabearNewFormat.xml": (
+        IMPORTS,
+        [
+            ("2012-10-01T06:22:00", 198, 69.9),
+            ("2012-10-01T06:49:00", 198, 69.9),
+            ("2012-10-01T07:07:00", 925, 70.1),
+            ("2012-10-01T07:24:00", 198, 69.9),
+            ("2012-10-01T06:02:00", 198, 69.9),
+            ("2012-10-01T06:22:00", 198, 69.9),
+            ("2012-10-01T06:49:00", 198, 69.9),
+            ("2012-10-01T07:07:00", 925, 70.1),
+            ("2012-10-01T07:24:00", 198, 69.9),
+        ],
+    ),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
