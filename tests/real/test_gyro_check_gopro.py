@@ -212,7 +212,6 @@ def _linear_r2(predictor: np.ndarray, target: np.ndarray) -> float:
     return float(1.0 - np.sum(residual**2) / np.sum((target - target.mean(axis=0)) ** 2))
 
 
-@pytest.mark.slow  # tracks each clip a second time (about 5 s each on a quiet 2-core machine)
 @pytest.mark.parametrize("clip, verdict", [("karma", "rigid"), ("max_heromode", "not rigid")])
 def test_the_stage_probe_gives_the_same_verdict(
     clip: str, verdict: str, request: pytest.FixtureRequest
