@@ -244,6 +244,16 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     # (the UDDF's placeholder dive is not one), samples partly out of time order
     # (19:00 before 18:59) and repeated, as the APD logger wrote them.
     "test-apd-inspiration-reference.xml": (IMPORTS, [("2022-04-24T10:30:58", 695, 60.2)]),
+    # Subsurface's reading of test41.csv (four dives without a profile, skipped),
+    # TestDivingLog4.1.1.sql (dive 417), test40.xml and test42.xml.
+    "test40-42.xml": (
+        IMPORTS,
+        [
+            ("2015-05-23T13:23:00", 689, 79.57),
+            ("2014-04-01T10:00:00", 2485, 38.974),
+            ("2014-04-02T10:00:00", 2485, 38.974),
+        ],
+    ),
     # Subsurface's reading of Seabear H3 and T1 CSV logs: the same four or five dives
     # from two computers (same starts, told apart by model), one a 1-second freedive.
     "TestDiveSeabearNewFormat.xml": (
@@ -358,3 +368,18 @@ def test_corpus_same_profile_in_two_spellings(first: str, second: str) -> None:
     (b,) = read_logbook(CORPUS / second)
     np.testing.assert_array_equal(a.stamps_s - a.stamps_s[0], b.stamps_s - b.stamps_s[0])
     np.testing.assert_array_equal(a.depth_m, b.depth_m)
+
+
+def test_test40_and_test42_match_subsurface_reading() -> None:
+    """Subsurface's testparse reads test40.xml (V2) and test42.xml (V3) and saves
+    test40-42.xml: our reading of each file gives the dive of its reading."""
+    theirs = {d.start_iso: d for d in read_logbook(CORPUS / "test40-42.xml")}
+    for name in ("test40.xml", "test42.xml"):
+        (ours,) = read_logbook(CORPUS / name)
+        reference = theirs[ours.start_iso]
+        # (Not the fingerprint: in test40-42.xml both dives carry diveid 76543210 at
+        # different starts, so each gets an id of its own.)
+        assert (ours.model, ours.serial) == (reference.model, reference.serial)
+        np.testing.assert_array_equal(ours.stamps_s, reference.stamps_s)
+        np.testing.assert_array_equal(ours.depth_m, reference.depth_m)
+        np.testing.assert_array_equal(ours.temperature_c, reference.temperature_c)
