@@ -59,8 +59,8 @@ def detect_format(path: Path) -> str:
         root = root_element(head)
         if root is not None and root.lower() == "uddf":
             return "uddf"
-        if root is not None and root.lower() in ("divelog", "dives"):
-            return "subsurface"
+        if root is not None and root.lower() in ("divelog", "dives", "dive"):
+            return "subsurface"  # <dive>: libdivecomputer's dump, Subsurface's first input
         found = (
             f"root element <{root}>"
             if root is not None

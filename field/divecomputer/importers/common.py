@@ -40,8 +40,9 @@ MIN_TEMPERATURE_C = -40.0
 MAX_TEMPERATURE_C = 70.0
 
 
-def parse_xml(path: Path) -> Any:
-    """Parse `path` with defusedxml: no DTD entities, no external references.
+def parse_xml(path: Path, data: bytes | None = None) -> Any:
+    """Parse `path` (or `data` read from it) with defusedxml: no DTD entities, no external
+    references.
 
     Raises `InputError` naming the file for malformed XML and for entity declarations
     (billion laughs) or external entities, which a logbook never needs.
@@ -51,8 +52,11 @@ def parse_xml(path: Path) -> Any:
     import defusedxml
     import defusedxml.ElementTree as SafeET
 
+    safe = {"forbid_dtd": False, "forbid_entities": True, "forbid_external": True}
     try:
-        return SafeET.parse(path, forbid_dtd=False, forbid_entities=True, forbid_external=True)
+        if data is not None:
+            return ET.ElementTree(SafeET.fromstring(data, **safe))
+        return SafeET.parse(path, **safe)
     except defusedxml.DefusedXmlException as error:
         raise InputError(
             f"{path}: refused unsafe XML ({type(error).__name__}: entity declarations and "

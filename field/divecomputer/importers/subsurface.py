@@ -8,12 +8,18 @@ samples are `<sample time depth temp>` inside each `<divecomputer>`, or inside `
 in files older than divecomputers. Dates come unpadded (`2014-4-1`, `10:0:0`); values
 carry their unit (`12.3 m`, `40 ft`, `15.0 C`, `59 F`, `288.15 K`).
 
+Subsurface's first input is read too: libdivecomputer's XML dump, one or more top-level
+`<dive>` elements with no root (so not well-formed XML as a whole), each with `<number>`,
+`<datetime>2011-07-16 14:19:15</datetime>` and `<sample><time>00:20</time><depth>2.05
+</depth><temperature>16.00</temperature></sample>` children. Every dive of the dump is read.
+
 A dive without a date or without samples is skipped with a warning; a sample that
 cannot be read is skipped with one warning per dive.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +41,30 @@ from shared.errors import InputError
 from shared.formats.diveprofile import DiveProfile
 
 ROOTS = ("divelog", "dives")
+
+# The prolog (declaration, processing instructions, comments, DOCTYPE) before the first
+# element, and a first element <dive>: libdivecomputer's dump, read inside a <dives> root.
+_PROLOG = re.compile(
+    rb"(?:\xef\xbb\xbf)?(?:\s+|<\?.*?\?>|<!--.*?-->|<!DOCTYPE[^>]*>)*", re.DOTALL | re.IGNORECASE
+)
+_DIVE_START = re.compile(rb"<dive[\s>/]", re.IGNORECASE)
+_HEAD_BYTES = 64 * 1024
+
+
+def _parse_logbook(path: Path) -> Any:
+    """The logbook's tree; a libdivecomputer dump (top-level <dive> elements) is read as
+    the children of a <dives> root, as Subsurface's first parser read it."""
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(_HEAD_BYTES)
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.strerror})") from None
+    start = _PROLOG.match(head)
+    end = start.end() if start is not None else 0
+    if _DIVE_START.match(head, end) is None:
+        return parse_xml(path)
+    data = path.read_bytes()
+    return parse_xml(path, data[:end] + b"<dives>" + data[end:] + b"</dives>")
 
 
 def _start_iso(element: Any, inherited: str | None) -> str | None:
@@ -93,7 +123,7 @@ def _serials(root: Any) -> dict[tuple[str, str], str]:
 
 def read_subsurface(path: Path) -> list[DiveProfile]:
     """Every divecomputer of every dive, in file order (trips included)."""
-    root = parse_xml(path).getroot()
+    root = _parse_logbook(path).getroot()
     if local_name(root.tag).lower() not in ROOTS:
         raise InputError(
             f"{path}: root element <{local_name(root.tag)}> (expected Subsurface's <divelog>)"

@@ -517,3 +517,63 @@ def test_dives_sharing_a_logbook_id_stay_apart(tmp_path: Path) -> None:
         d.fingerprint for d in dives
     }
     assert len(import_logbook(path, tmp_path / "dives")) == 3
+
+
+# libdivecomputer's XML dump, Subsurface's first input (its dives/2011-*.xml): top-level
+# <dive> elements without a root, values as child elements, bare metres and degrees C.
+LIBDIVECOMPUTER_DUMP = """<?xml version="1.0"?>
+<!-- dumped by libdivecomputer -->
+<dive>
+<number>1</number>
+<fingerprint>0E130FDB070710</fingerprint>
+<datetime>2011-07-16 14:19:15</datetime>
+<divetime>00:40</divetime>
+<maxdepth>2.05</maxdepth>
+<gasmix><he>0.0</he><o2>32.0</o2><n2>68.0</n2></gasmix>
+<sample>
+   <time>00:00</time>
+   <depth>1.22</depth>
+   <pressure tank="0">185.32</pressure>
+   <temperature>16.00</temperature>
+</sample>
+<sample>
+   <time>00:20</time>
+   <depth>2.05</depth>
+   <event type="3" time="14" flags="1" value="0">ascent</event>
+</sample>
+<sample>
+   <time>00:40</time>
+   <depth>1.79</depth>
+</sample>
+</dive>
+<dive>
+<number>2</number>
+<datetime>2011-07-16 16:02:00</datetime>
+<sample><time>00:00</time><depth>0.5</depth></sample>
+<sample><time>01:00</time><depth>3.5</depth></sample>
+</dive>
+"""
+
+
+def test_libdivecomputer_dump_every_dive(tmp_path: Path) -> None:
+    path = tmp_path / "2011-07-16.xml"
+    path.write_text(LIBDIVECOMPUTER_DUMP)
+    assert detect_format(path) == "subsurface"
+    first, second = read_logbook(path)
+    assert (first.start_iso, second.start_iso) == ("2011-07-16T14:19:15", "2011-07-16T16:02:00")
+    np.testing.assert_array_equal(first.stamps_s - first.stamps_s[0], [0.0, 20.0, 40.0])
+    np.testing.assert_array_equal(first.depth_m, [1.22, 2.05, 1.79])
+    assert first.temperature_c[0] == 16.0 and np.isnan(first.temperature_c[1:]).all()
+    np.testing.assert_array_equal(second.depth_m, [0.5, 3.5])
+    assert len(import_logbook(path, tmp_path / "dives")) == 2
+    # One dive alone is a well-formed document with root <dive>; read the same way.
+    single = tmp_path / "single.xml"
+    single.write_text(LIBDIVECOMPUTER_DUMP.split("<dive>\n<number>2")[0])
+    (alone,) = read_logbook(single)
+    assert alone.start_iso == first.start_iso and alone.stamps_s.size == 3
+    # A dump cut short is malformed XML, refused in one line naming the file.
+    cut = tmp_path / "cut.xml"
+    cut.write_text(LIBDIVECOMPUTER_DUMP[:300])
+    with pytest.raises(InputError, match=r"cut\.xml:\d+:\d+: malformed XML") as caught:
+        read_logbook(cut)
+    assert "\n" not in str(caught.value)
