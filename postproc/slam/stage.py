@@ -315,9 +315,10 @@ def run(
             )
         else:
             LOG.info(
-                "%s: too little rotation in the first %.0f s to check the calibration guess",
+                "%s: gyro check of the first %.0f s inconclusive (%s); the IMU is kept",
                 source.name,
                 options.gyro_check_options.probe_s,
+                check.reason,
             )
     frontend = KltFrontend(options.frontend, calibration.camera)
     estimator_options = dataclasses.replace(
