@@ -46,16 +46,6 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-SMALL_SIM: dict[str, Any] = {
-    "width_px": 320,
-    "height_px": 200,
-    "render_scale": 2,
-    "fps": 15.0,
-    "keyframe_interval": 5,
-    "bitrate_kbps": 800,
-    "clip_s": 2.0,
-    "texel_mm": 40.0,
-}
 IMU_HZ = 400.0
 
 
@@ -397,7 +387,7 @@ def main() -> int:
     import logging
 
     logging.disable(logging.WARNING)
-    from field.record.sources.sim import SimOptions, prepare_clip
+    from field.record.sources.sim import SMALL_RIG, SimOptions, prepare_clip
 
     chosen = list(FAULTS) if not args.only else [f.strip() for f in args.only.split(",")]
     unknown = set(chosen) - set(FAULTS)
@@ -407,8 +397,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="bench-faults-") as tmp:
         work = Path(tmp)
         cache = work / "cache"
-        prepare_clip(SimOptions(**SMALL_SIM, cache_dir=str(cache)))
-        sim = {**SMALL_SIM, "cache_dir": str(cache)}
+        prepare_clip(SimOptions(**SMALL_RIG, cache_dir=str(cache)))
+        sim = {**SMALL_RIG, "cache_dir": str(cache)}
         for name in chosen:
             function, unit, needs_root = FAULTS[name]
             row = Row(name, unit=unit)

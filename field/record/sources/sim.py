@@ -154,6 +154,20 @@ class SimOptions:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+SMALL_RIG: dict[str, Any] = {
+    "width_px": 320,
+    "height_px": 200,
+    "render_scale": 2,
+    "fps": 15.0,
+    "keyframe_interval": 5,
+    "bitrate_kbps": 800,
+    "clip_s": 2.0,
+    "texel_mm": 40.0,  # coarse textures: the scene builds in well under a second
+}
+"""SimOptions of a small rig for tests and fault benchmarks: 320x200 frames rendered at
+160x100, 15 fps, the default 400 Hz IMU and 4 Hz depth; renders in seconds."""
+
+
 def default_cache_dir() -> Path:
     env = os.environ.get("WRECKMAP_CACHE")
     return Path(env) if env else Path.home() / ".cache" / "wreckmap"

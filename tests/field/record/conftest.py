@@ -10,19 +10,12 @@ from typing import Any
 
 import pytest
 
+from field.record.sources.sim import SMALL_RIG
+
 REPO = Path(__file__).resolve().parents[3]
 
 # A small rig: 320x200 frames rendered at 160x100, 15 fps, 400 Hz IMU, 4 Hz depth.
-SMALL_SIM: dict[str, Any] = {
-    "width_px": 320,
-    "height_px": 200,
-    "render_scale": 2,
-    "fps": 15.0,
-    "keyframe_interval": 5,
-    "bitrate_kbps": 800,
-    "clip_s": 2.0,
-    "texel_mm": 40.0,  # coarse textures: the scene builds in well under a second
-}
+SMALL_SIM: dict[str, Any] = SMALL_RIG
 
 
 @pytest.fixture(scope="session")
