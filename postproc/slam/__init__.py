@@ -18,8 +18,8 @@ Modules, from pixels to the result folder:
 - `estimator`: ties the above together frame by frame (pure computation).
 - `visual_only`: the IMU-free baseline (`--no-imu`).
 - `inputs`: EuRoC (also camera-only) and session-folder readers behind one Protocol.
-- `imu_stream`: real IMU rows (repeated or backward stamps, gyro and accelerometer
-  merged from separate sensors) into one strictly increasing stream.
+  (Real IMU rows, with repeated or backward stamps or gyro and accelerometer merged
+  from separate sensors, become one strictly increasing stream in `shared.imu`.)
 - `stage`: `SlamOptions` and `run(options, input_path, out_dir)` writing the
   SLAM result folder of docs/conventions.md.
 - `synthetic`: feature-level and rendered-wall simulation for tests and benchmarks.

@@ -25,10 +25,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from postproc.slam.imu_stream import ImuCleaning, clean_imu_rows
 from postproc.slam.types import ImuSamples
 from shared.calibration.kalibr import CameraCalibration, ImuNoise, read_camchain, read_imu_yaml
 from shared.errors import InputError
+from shared.imu import ImuCleaning, clean_imu_rows
 
 Image = npt.NDArray[np.uint8]
 LOG = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ class SlamInput(Protocol):
 
     @property
     def imu_cleaning(self) -> ImuCleaning:
-        """What was merged, dropped or interpolated to make `imu` (postproc.slam.imu_stream)."""
+        """What was merged, dropped or interpolated to make `imu` (shared.imu)."""
         ...
 
     @property
@@ -283,7 +283,7 @@ class SessionInput:
                 f"{folder}: no images (expected {self.IMAGE_TOPIC} or {self.VIDEO_TOPIC})"
             )
         # Rotated recordings follow each other in time; duplicate or out-of-order rows
-        # inside them are merged or dropped with a warning (postproc.slam.imu_stream).
+        # inside them are merged or dropped with a warning (shared.imu).
         try:
             self._imu, self.imu_cleaning = clean_imu_rows(
                 np.concatenate(stamps),

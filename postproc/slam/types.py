@@ -12,6 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from shared.imu import ImuSamples
+
+__all__ = ["FloatArray", "FrameTracks", "ImuSamples", "IntArray"]
+
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
@@ -42,30 +46,3 @@ class FrameTracks:
                 f"FrameTracks: expected ({n}, 2) coordinates, got {self.xy_normalised.shape} "
                 f"and {self.pixels.shape}"
             )
-
-
-@dataclass
-class ImuSamples:
-    """IMU measurements in the body frame, on the IMU clock.
-
-    stamps_ns: (M,) int64 ns, strictly increasing.
-    gyro_rad_s: (M, 3) angular rate (rad/s).
-    accel_m_s2: (M, 3) specific force (m/s^2; reads +9.81 upwards at rest).
-    """
-
-    stamps_ns: IntArray
-    gyro_rad_s: FloatArray
-    accel_m_s2: FloatArray
-
-    def __post_init__(self) -> None:
-        m = len(self.stamps_ns)
-        if self.gyro_rad_s.shape != (m, 3) or self.accel_m_s2.shape != (m, 3):
-            raise ValueError(
-                f"ImuSamples: expected ({m}, 3) gyro and accel, got {self.gyro_rad_s.shape} "
-                f"and {self.accel_m_s2.shape}"
-            )
-        if m > 1 and np.any(np.diff(self.stamps_ns) <= 0):
-            raise ValueError("ImuSamples: stamps_ns must be strictly increasing")
-
-    def __len__(self) -> int:
-        return len(self.stamps_ns)

@@ -1,6 +1,9 @@
-"""IMU rows as real recorders write them, made into one strictly increasing stream.
+"""IMU samples, and IMU rows as real recorders write them made into one such stream.
 
-Pure computation, no I/O. What real streams hold, and what becomes of it:
+Pure computation, no I/O. `ImuSamples` is the one IMU type of the tree: stamps on
+the IMU clock (int64 ns since the UNIX epoch), gyro in rad/s, specific force in
+m/s^2, in the IMU (body) frame. `clean_imu_rows` makes one from raw rows; what real
+streams hold, and what becomes of it:
 
 - rows that repeat a stamp: a recorder that writes a message twice, or a stream
   merged from separate gyro and accelerometer sensors that writes each sensor's
@@ -14,7 +17,7 @@ Pure computation, no I/O. What real streams hold, and what becomes of it:
   and so are rows before one sensor's first sample or after its last.
 
 Irregular stamps and sub-millisecond gaps need nothing: preintegration cuts its
-intervals at every sample (`backend.imu_intervals`).
+intervals at every sample (`postproc.slam.backend.imu_intervals`).
 """
 
 from __future__ import annotations
@@ -23,10 +26,38 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
-from postproc.slam.types import FloatArray, ImuSamples, IntArray
-
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 LOG = logging.getLogger(__name__)
+
+
+@dataclass
+class ImuSamples:
+    """IMU measurements in the body frame, on the IMU clock.
+
+    stamps_ns: (M,) int64 ns, strictly increasing.
+    gyro_rad_s: (M, 3) angular rate (rad/s).
+    accel_m_s2: (M, 3) specific force (m/s^2; reads +9.81 upwards at rest).
+    """
+
+    stamps_ns: IntArray
+    gyro_rad_s: FloatArray
+    accel_m_s2: FloatArray
+
+    def __post_init__(self) -> None:
+        m = len(self.stamps_ns)
+        if self.gyro_rad_s.shape != (m, 3) or self.accel_m_s2.shape != (m, 3):
+            raise ValueError(
+                f"ImuSamples: expected ({m}, 3) gyro and accel, got {self.gyro_rad_s.shape} "
+                f"and {self.accel_m_s2.shape}"
+            )
+        if m > 1 and np.any(np.diff(self.stamps_ns) <= 0):
+            raise ValueError("ImuSamples: stamps_ns must be strictly increasing")
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
 
 
 @dataclass
