@@ -17,8 +17,7 @@ Steps, each a real command line run as a subprocess:
    import`, run by the pipeline), then slam, depth, merge, sfm and dense, and report.html.
 4. A summary: the time of every step and stage and its error against the truth.
 
-Stages not built yet are named as such (nothing is faked). Exit status 0 only when every
-step and every stage that exists succeeded. Steps already done in `--out` are kept
+Exit status 0 only when every step and every stage succeeded. Steps already done in `--out` are kept
 (delete the folder to start over); the pipeline skips stages whose inputs are unchanged.
 """
 
@@ -183,7 +182,7 @@ def write_project(
 
 def summary(project_path: Path, steps: dict[str, tuple[int, float]]) -> tuple[str, bool]:
     """The table of steps and stages (time, error against truth) and whether all succeeded."""
-    from postproc.pipeline.project import load_project, stage_module_available
+    from postproc.pipeline.project import load_project
     from postproc.pipeline.runner import STAMP_NAME, plan
 
     project = load_project(project_path)
@@ -195,27 +194,18 @@ def summary(project_path: Path, steps: dict[str, tuple[int, float]]) -> tuple[st
     ok = True
     for name, (code, seconds) in steps.items():
         rows.append((name, "-", "done" if code == 0 else f"exit {code}", f"{seconds:.1f}", ""))
-        ok = ok and code in (0, 2) if name == "post-run" else ok and code == 0
+        ok = ok and code == 0
     tasks, _ = plan(project)
-    missing = []
     for task in tasks:
         stamp = None
         if (task.out / STAMP_NAME).is_file():
             stamp = json.loads((task.out / STAMP_NAME).read_text(encoding="utf-8"))
-        if not stage_module_available(task.stage):
-            status = "not built yet"
-            missing.append(task.stage)
-        else:
-            status = "done" if stamp else "failed/not run"
-            ok = ok and stamp is not None
+        status = "done" if stamp else "failed/not run"
+        ok = ok and stamp is not None
         seconds = f"{stamp['seconds']:.1f}" if stamp else "-"
         rows.append((task.stage, task.session or "-", status, seconds, _error(task, evaluation)))
     width = [max(len(r[i]) for r in rows) for i in range(5)]
     text = "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width, strict=True)) for r in rows)
-    if missing:
-        text += "\nstages not built yet: " + ", ".join(sorted(set(missing), key=missing.index))
-    else:
-        text += "\nevery stage is built"
     text += f"\nreport: {project.output / 'report.html'}"
     mesh = project.output / "dense" / "mesh.ply"
     text += f"\nmesh: {mesh if mesh.is_file() else 'not made'}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
+from postproc.pipeline.stages import STAGES
 from shared import cli
 
 DESCRIPTION = """\
@@ -14,14 +15,10 @@ example:
   wreckmap-post slam sessions/dive1 --out results/dive1/slam
 """
 
-# Command groups, in the order data flows through the stages.
+# Command groups, in the order data flows through the stages: one per stage of the
+# registry that has a command, then the whole batch and the exports.
 COMMAND_MODULES: tuple[str, ...] = (
-    "postproc.commands.calibrate",
-    "postproc.commands.slam",
-    "postproc.commands.depth",
-    "postproc.commands.merge",
-    "postproc.commands.sfm",
-    "postproc.commands.dense",
+    *(stage.command.__name__ for stage in STAGES.values() if stage.command is not None),
     "postproc.commands.run",
     "postproc.commands.export",
 )

@@ -555,3 +555,21 @@ def run_rig(
         overwrite,
     )
     return write_camchain(output_path, [first, second], overwrite=overwrite)
+
+
+# ------------------------------------------------------------------------------ pipeline
+
+
+@dataclass(kw_only=True)
+class CalibrateOptions:
+    """Options of the pipeline's calibrate stage (`calibration.recording` in a project).
+
+    camera: intrinsics from the AprilGrid views (CameraCalibrationOptions).
+    imu: camera-IMU rotation and time shift (ImuCalibrationOptions).
+    estimate_imu: also estimate the camera-IMU rotation and time shift (else the
+        camera-only camchain is used).
+    """
+
+    camera: CameraCalibrationOptions = field(default_factory=CameraCalibrationOptions)
+    imu: ImuCalibrationOptions = field(default_factory=ImuCalibrationOptions)
+    estimate_imu: bool = True

@@ -19,7 +19,7 @@ examples:
 Runs import (GoPro files), slam, depth, merge, sfm and dense for every session of
 the project (deploy/project.example.yaml documents every key), skipping stages whose
 inputs and options have not changed, then writes report.html. Exit status: 0 all
-done, 1 a stage failed, 2 a stage is not built yet (what exists ran).
+done or up to date, 1 a stage failed (what did not depend on it ran).
 """
 
 REPORT_EXAMPLE = """\

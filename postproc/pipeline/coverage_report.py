@@ -142,8 +142,7 @@ def compute_run_coverage(
         if label == "merged":
             result.surface, result.merged_score = surface, seen.score
         result.maps[label] = {
-            view: coverage_map(surface, seen, view, options, cell_m=cell)
-            for view in VIEWS
+            view: coverage_map(surface, seen, view, options, cell_m=cell) for view in VIEWS
         }
     return result
 

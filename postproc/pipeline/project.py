@@ -17,17 +17,14 @@ Every key is documented, with its unit, in `deploy/project.example.yaml`. In sho
       dense: {max_image_size_px: 640}
 
 Loading checks the structure and types and builds each stage's options dataclass (nested
-dataclasses from nested mappings); any error names the file and the key
+dataclasses from nested mappings; the stages and their options types come from the
+registry, `postproc.pipeline.stages.STAGES`); any error names the file and the key
 (`project.yaml: stages.slam.frontend.max_corners: unknown key (expected one of ...)`).
-Stage options of a stage whose module is not built yet are kept as a mapping and checked
-when the stage exists.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import importlib
 import math
 import re
 import types
@@ -36,21 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from postproc.pipeline.stages import STAGES, Stage
 from shared.errors import InputError
-
-# Stage name -> (module, options class). `import` calls the field CLI (see runner).
-STAGE_OPTIONS: dict[str, tuple[str, str]] = {
-    "calibrate": ("postproc.pipeline.calibrate_options", "CalibrateOptions"),
-    "import": ("postproc.pipeline.stages", "ImportOptions"),
-    "slam": ("postproc.slam.stage", "SlamOptions"),
-    "depth": ("postproc.depth.stage", "DepthOptions"),
-    "merge": ("postproc.merge.stage", "MergeOptions"),
-    "sfm": ("postproc.sfm.stage", "SfmOptions"),
-    "dense": ("postproc.dense.stage", "DenseOptions"),
-}
-
-# The module that must exist for a stage to run (where it differs from its options' module).
-STAGE_MODULES: dict[str, str] = {"calibrate": "postproc.calibrate.stage"}
 
 SESSION_SOURCES = ("euroc", "session", "gopro")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -107,15 +91,13 @@ class Project:
     calibration_target: Path | None = None
     truth: Path | None = None
     stage_options: dict[str, Any] = field(default_factory=dict)
-    raw_stage_options: dict[str, dict[str, Any]] = field(default_factory=dict)
     cluster: ClusterSpec = field(default_factory=ClusterSpec)
 
-    def options_for(self, stage: str) -> Any:
-        """The options dataclass of `stage` (built now if its module appeared since loading)."""
+    def options_for(self, stage: str, entry: Stage | None = None) -> Any:
+        """The options dataclass of `stage` (its defaults when the project gives none);
+        entry: the stage's registry entry, when not one of `STAGES`."""
         if stage not in self.stage_options:
-            self.stage_options[stage] = build_stage_options(
-                self.path, stage, self.raw_stage_options.get(stage, {})
-            )
+            self.stage_options[stage] = build_stage_options(self.path, stage, {}, entry=entry)
         return self.stage_options[stage]
 
 
@@ -275,17 +257,13 @@ def parse_project(document: dict[str, Any], path: Path) -> Project:
     stages_raw = document.get("stages") or {}
     if not isinstance(stages_raw, dict):
         raise InputError(f"{where('stages')}: expected a mapping of stage name to options")
-    _no_unknown(path, "stages", stages_raw, set(STAGE_OPTIONS))
-    raw: dict[str, dict[str, Any]] = {}
+    _no_unknown(path, "stages", stages_raw, set(STAGES))
     built: dict[str, Any] = {}
-    for stage in STAGE_OPTIONS:
+    for stage in STAGES:
         options = stages_raw.get(stage) or {}
         if not isinstance(options, dict):
             raise InputError(f"{where('stages.' + stage)}: expected a mapping of options")
-        raw[stage] = options
-        # A stage not built yet is checked when it exists (the runner names what is missing).
-        with contextlib.suppress(StageModuleMissingError):
-            built[stage] = build_stage_options(path, stage, options)
+        built[stage] = build_stage_options(path, stage, options)
 
     cluster_raw = document.get("cluster") or {}
     if not isinstance(cluster_raw, dict):
@@ -304,38 +282,15 @@ def parse_project(document: dict[str, Any], path: Path) -> Project:
         calibration_target=calibration_target,
         truth=truth,
         stage_options=built,
-        raw_stage_options=raw,
         cluster=cluster,
     )
 
 
-class StageModuleMissingError(InputError):
-    """A stage's module is not built yet (names the module)."""
-
-    def __init__(self, stage: str, module: str) -> None:
-        super().__init__(f"stage {stage!r}: module {module} is not built yet")
-        self.stage = stage
-        self.module = module
-
-
-def stage_module_available(stage: str) -> bool:
-    """Whether the stage's module imports (False only when the module itself is missing)."""
-    module = STAGE_MODULES.get(stage, STAGE_OPTIONS[stage][0])
-    try:
-        importlib.import_module(module)
-    except ModuleNotFoundError as error:
-        if error.name is not None and module.startswith(error.name):
-            return False
-        raise
-    return True
-
-
-def build_stage_options(path: Path, stage: str, options: dict[str, Any]) -> Any:
+def build_stage_options(
+    path: Path, stage: str, options: dict[str, Any], *, entry: Stage | None = None
+) -> Any:
     """The options dataclass of `stage` from the mapping `options` (key errors name `path`)."""
-    module_name, class_name = STAGE_OPTIONS[stage]
-    if not stage_module_available(stage):
-        raise StageModuleMissingError(stage, STAGE_MODULES.get(stage, module_name))
-    cls = getattr(importlib.import_module(module_name), class_name)
+    cls = (entry or STAGES[stage]).options_type()
     return dataclass_from_mapping(cls, options, path=path, key=f"stages.{stage}")
 
 

@@ -19,12 +19,21 @@ import html
 import io
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from shared.errors import WreckmapError
+from shared.folders import (
+    DenseFolder,
+    DepthFolder,
+    HandoffFolder,
+    MergeFolder,
+    SfmFolder,
+    SlamFolder,
+)
 from shared.fsutil import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -265,10 +274,95 @@ def _evaluation_html(evaluation: dict[str, Any]) -> str:
     return "".join(parts)
 
 
+def _slam_section(folder: SlamFolder, session: Any) -> list[str]:
+    stats = _json(folder.stats)
+    if stats is None:
+        return ["<p class='missing'>SLAM: not run</p>"]
+    keys = ("frames", "keyframes", "run_time_s", "sequence_duration_s", "real_time_factor",
+            "loop_closures", "tracking_failures")  # fmt: skip
+    return [
+        "<h3>SLAM</h3>" + _table([(k, stats[k]) for k in keys if k in stats]),
+        _img(trajectory_png(folder.trajectory, f"{session.name}: trajectory (top)"), "trajectory"),
+    ]
+
+
+def _depth_section(folder: DepthFolder, session: Any) -> list[str]:
+    sync = _json(folder.sync)
+    if sync is None:
+        return ["<p class='missing'>Depth: not run</p>"] if session.dive is not None else []
+    keys = ("time_offset_s", "time_offset_sigma_s", "drift_ppm", "depth_offset_m",
+            "depth_offset_sigma_m", "depth_scale", "residual_rms_m", "samples_used")  # fmt: skip
+    return [
+        "<h3>Depth sync</h3>" + _table([(k, sync[k]) for k in keys if k in sync]),
+        _img(_file_png(folder.plot), "depth sync plot"),
+    ]
+
+
+def _merge_section(folder: MergeFolder, session: Any) -> list[str]:
+    body = ["<h2>Merge</h2>"]
+    transforms = _json(folder.transforms)
+    if transforms is None:
+        return [*body, "<p class='missing'>not run</p>"]
+    rows = []
+    for name, entry in transforms.get("sessions", {}).items():
+        if entry.get("placed"):
+            rows.append(
+                (
+                    name,
+                    f"placed via {entry.get('via')}, sigma "
+                    f"{entry.get('sigma_translation_m', float('nan')):.3f} m",
+                )
+            )
+        else:
+            rows.append((name, "not placed: " + str(entry.get("reason", ""))))
+    body.append(
+        _table([("reference", transforms.get("reference")), ("dof", transforms.get("dof")), *rows])
+    )
+    body.append(_img(_file_png(folder.top_plot), "merge top view"))
+    body.append(_img(_file_png(folder.side_plot), "merge side view"))
+    return body
+
+
+def _sfm_section(folder: SfmFolder, session: Any) -> list[str]:
+    body = ["<h2>Structure from motion</h2>"]
+    sfm = _json(folder.stats)
+    if sfm is None:
+        return [*body, "<p class='missing'>not run</p>"]
+    keys = ("keyframes", "registered_images", "points3D", "mean_track_length",
+            "mean_reprojection_error_px", "pairs", "seconds")  # fmt: skip
+    return [*body, _table([(k, sfm[k]) for k in keys if k in sfm])]
+
+
+def _dense_section(folder: DenseFolder, session: Any) -> list[str]:
+    body = ["<h2>Dense reconstruction</h2>"]
+    dense = _json(folder.report)
+    if dense is None:
+        return [*body, "<p class='missing'>not run</p>"]
+    keys = ("backend", "images", "fused_points", "mesh", "timings")
+    body.append(_table([(k, dense[k]) for k in keys if k in dense]))
+    target = folder.mesh if folder.mesh.is_file() else folder.fused
+    body.append(_img(render_mesh_png(target) if target.is_file() else None, "mesh render"))
+    return body
+
+
+# The report's section of each folder kind a stage writes (a kind without one, like the
+# calibration or an imported session, has no section). Sections follow the registry's
+# order: per session those of the session stages, then those of the project stages.
+SECTIONS: dict[type[HandoffFolder], Callable[[Any, Any], list[str]]] = {
+    SlamFolder: _slam_section,
+    DepthFolder: _depth_section,
+    MergeFolder: _merge_section,
+    SfmFolder: _sfm_section,
+    DenseFolder: _dense_section,
+}
+
+
 def build_report(
     project: Any, *, result: Any = None, evaluation: dict[str, Any] | None = None
 ) -> str:
     """The report page of `project` as one HTML string (no external references)."""
+    from postproc.pipeline.stages import STAGES
+
     out = project.output
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     from postproc.pipeline.coverage_report import coverage_html, safe_run_coverage
@@ -287,79 +381,18 @@ def build_report(
         "<h2>Stage runs</h2>",
         _status_rows(project, result),
     ]
+    sectioned = [stage for stage in STAGES.values() if stage.writes in SECTIONS]
     for session in project.sessions:
-        slam_dir = out / "sessions" / session.name
         body.append(f"<h2>Session {html.escape(session.name)}</h2>")
         body.append(
             f"<p class='small'>{session.source}: "
             f"{html.escape(', '.join(str(p) for p in session.paths))}</p>"
         )
-        stats = _json(slam_dir / "stats.json")
-        if stats is None:
-            body.append("<p class='missing'>SLAM: not run</p>")
-        else:
-            keys = ("frames", "keyframes", "run_time_s", "sequence_duration_s", "real_time_factor",
-                    "loop_closures", "tracking_failures")  # fmt: skip
-            body.append("<h3>SLAM</h3>" + _table([(k, stats[k]) for k in keys if k in stats]))
-            body.append(
-                _img(
-                    trajectory_png(
-                        slam_dir / "trajectory.tum", f"{session.name}: trajectory (top)"
-                    ),
-                    "trajectory",
-                )
-            )
-        sync = _json(slam_dir / "depth" / "sync.json")
-        if sync is not None:
-            keys = ("time_offset_s", "time_offset_sigma_s", "drift_ppm", "depth_offset_m",
-                    "depth_offset_sigma_m", "depth_scale", "residual_rms_m",
-                    "samples_used")  # fmt: skip
-            body.append("<h3>Depth sync</h3>" + _table([(k, sync[k]) for k in keys if k in sync]))
-            body.append(_img(_file_png(slam_dir / "depth" / "depth_sync.png"), "depth sync plot"))
-        elif session.dive is not None:
-            body.append("<p class='missing'>Depth: not run</p>")
-    body.append("<h2>Merge</h2>")
-    transforms = _json(out / "merge" / "transforms.json")
-    if transforms is None:
-        body.append("<p class='missing'>not run</p>")
-    else:
-        rows = []
-        for name, entry in transforms.get("sessions", {}).items():
-            if entry.get("placed"):
-                rows.append(
-                    (
-                        name,
-                        f"placed via {entry.get('via')}, sigma "
-                        f"{entry.get('sigma_translation_m', float('nan')):.3f} m",
-                    )
-                )
-            else:
-                rows.append((name, "not placed: " + str(entry.get("reason", ""))))
-        body.append(
-            _table(
-                [("reference", transforms.get("reference")), ("dof", transforms.get("dof")), *rows]
-            )
-        )
-        body.append(_img(_file_png(out / "merge" / "merge_top.png"), "merge top view"))
-        body.append(_img(_file_png(out / "merge" / "merge_side.png"), "merge side view"))
-    body.append("<h2>Structure from motion</h2>")
-    sfm = _json(out / "sfm" / "stats.json")
-    if sfm is None:
-        body.append("<p class='missing'>not run</p>")
-    else:
-        keys = ("keyframes", "registered_images", "points3D", "mean_track_length",
-                "mean_reprojection_error_px", "pairs", "seconds")  # fmt: skip
-        body.append(_table([(k, sfm[k]) for k in keys if k in sfm]))
-    body.append("<h2>Dense reconstruction</h2>")
-    dense = _json(out / "dense" / "dense.json")
-    if dense is None:
-        body.append("<p class='missing'>not run</p>")
-    else:
-        keys = ("backend", "images", "fused_points", "mesh", "timings")
-        body.append(_table([(k, dense[k]) for k in keys if k in dense]))
-        mesh = out / "dense" / "mesh.ply"
-        target = mesh if mesh.is_file() else out / "dense" / "fused.ply"
-        body.append(_img(render_mesh_png(target) if target.is_file() else None, "mesh render"))
+        for stage in (s for s in sectioned if s.per_session):
+            folder = stage.writes(stage.place(out, session.name))
+            body += SECTIONS[stage.writes](folder, session)
+    for stage in (s for s in sectioned if not s.per_session):
+        body += SECTIONS[stage.writes](stage.writes(stage.place(out, None)), None)
     if evaluation:
         body.append(_evaluation_html(evaluation))
     return (

@@ -1,19 +1,16 @@
 """The stage graph of a project, run with content-hash skipping and atomic outputs.
 
-Layout of the output folder (`project.output`)::
+The stages and their graph come from the registry (`postproc.pipeline.stages.STAGES`):
+each entry says which hand-off folder kind it writes (`shared.folders`), which it reads
+and where its folder goes. Layout of the output folder (`project.output`)::
 
-    imports/<session>/        GoPro chapters imported (field session folder), when needed
-    sessions/<session>/       SLAM result folder (trajectory.tum, keyframes/, stats.json...)
-    sessions/<session>/depth/ depth stage (sync.json, trajectory_world*.tum, depth_sync.png)
-    merge/                    transforms.json, targets.json, merge_top.png, merge_side.png
-    sfm/                      COLMAP model (sparse/0), stats.json
-    dense/                    fused.ply, mesh.ply, dense.json
+    calibration/              calibrate (CalibrationFolder), when calibrated from a recording
+    imports/<session>/        GoPro chapters imported (SessionFolder), when needed
+    sessions/<session>/       SLAM result (SlamFolder)
+    sessions/<session>/depth/ depth stage (DepthFolder)
+    merge/  sfm/  dense/      the project stages (MergeFolder, SfmFolder, DenseFolder)
     logs/<stage>[_<session>].log    one log per stage run
     report.html, evaluation.json    (`report`)
-
-The SLAM folder is named after the session because the merge and SfM stages name the
-sessions after their folders, and the depth folder lives inside it because both look for
-`depth/` beside the SLAM results.
 
 Skipping: each finished stage folder holds `.wreckmap-stage.json` with a digest (SHA-256)
 of the stage name, its options and its inputs: raw inputs (recordings, dive logs,
@@ -29,7 +26,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
-import importlib
 import json
 import logging
 import os
@@ -38,36 +34,27 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from postproc.pipeline.project import (
-    STAGE_MODULES,
-    STAGE_OPTIONS,
-    Project,
-    stage_module_available,
-)
+from postproc.pipeline.project import Project, SessionSpec
+from postproc.pipeline.stages import STAGES, NotPlanned, RunFn, Stage, check_output
 from shared.errors import InputError, WreckmapError
 from shared.fsutil import atomic_path, write_text_atomic
 
 log = logging.getLogger(__name__)
 
 STAMP_NAME = ".wreckmap-stage.json"
-FORMAT_VERSION = 1
-# Where each stage's adapter lives ("module:function"); tests swap in fakes.
-DEFAULT_ADAPTERS: dict[str, str] = {
-    stage: f"postproc.pipeline.stages:run_{stage}" for stage in STAGE_OPTIONS
-}
-STAGE_ORDER = ("calibrate", "import", "slam", "depth", "merge", "sfm", "dense")
+FORMAT_VERSION = 2
 
 
 @dataclass(kw_only=True)
 class Task:
     """One stage run: `stage` for `session` (None: the whole project) into `out`.
 
-    inputs: name -> path or list of paths, as the adapter receives them.
+    inputs: name -> path or list of paths, as the stage's run function receives them.
     raw_inputs: the files and folders hashed by content (the project's own inputs).
     deps: keys of the tasks whose outputs are inputs here.
     soft_deps: tasks whose outputs are used when they exist (depth for merge and SfM): a
@@ -89,11 +76,13 @@ class Task:
 
 @dataclass(kw_only=True)
 class TaskSpec:
-    """What a worker needs to run a task (picklable: paths and options, no data)."""
+    """What a worker needs to run a task (picklable: paths, options, and the stage's run
+    function and folder kind, which travel by reference)."""
 
     key: str
     stage: str
-    adapter: str
+    run: RunFn
+    writes: type
     options: Any
     inputs: dict[str, Any]
     out: Path
@@ -106,7 +95,7 @@ class TaskSpec:
 
 @dataclass
 class TaskOutcome:
-    """How a task ended: status is done, skipped (up to date), failed, missing or blocked."""
+    """How a task ended: status is done, skipped (up to date), failed or blocked."""
 
     key: str
     stage: str
@@ -123,7 +112,6 @@ class RunResult:
 
     outcomes: list[TaskOutcome]
     notes: list[str] = field(default_factory=list)
-    missing_modules: dict[str, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -134,135 +122,91 @@ class RunResult:
         return [o for o in self.outcomes if o.status == "failed"]
 
     def exit_code(self) -> int:
-        """0 all done, 1 a stage failed, 2 stages not built yet (and nothing failed)."""
-        if self.failed:
-            return 1
-        return 2 if not self.ok else 0
+        """0 every stage done or up to date, 1 a stage failed (or was blocked)."""
+        return 0 if self.ok else 1
 
 
-def plan(project: Project) -> tuple[list[Task], list[str]]:
-    """The tasks of `project` in dependency order, and notes on stages not planned (why)."""
+def plan(
+    project: Project, stages: Mapping[str, Stage] | None = None
+) -> tuple[list[Task], list[str]]:
+    """The tasks of `project` in dependency order, and notes on stages not planned (why).
+
+    Derived from the registry (`stages`, default `STAGES`): its order, with each run of
+    consecutive session stages laid out session by session; each read resolved to the
+    planned task that writes that folder kind, else to what the project file gives.
+    """
+    registry = STAGES if stages is None else stages
     out = project.output
     tasks: list[Task] = []
     notes: list[str] = []
-    slam_keys: list[str] = []
-    slam_dirs: list[Path] = []
-    depth_missing: list[str] = []
-    # Calibrated from a recording: import and SLAM wait for it and use its camchain.
-    calib_deps: tuple[str, ...] = ()
-    if project.calibration_recording is not None and project.calibration_target is not None:
-        tasks.append(
-            Task(
-                key="calibrate",
-                stage="calibrate",
-                session=None,
-                out=out / "calibration",
-                inputs={
-                    "recording": project.calibration_recording,
-                    "target": project.calibration_target,
-                },
-                raw_inputs=(project.calibration_recording, project.calibration_target),
-            )
-        )
-        calib_deps = ("calibrate",)
-    for session in project.sessions:
-        recording: Path
-        slam_deps: tuple[str, ...] = ()
-        raw: tuple[Path, ...]
-        if session.source == "gopro":
-            imported = out / "imports" / session.name
-            tasks.append(
-                Task(
-                    key=f"import:{session.name}",
-                    stage="import",
-                    session=session.name,
-                    out=imported,
-                    inputs={"videos": list(session.paths)},
-                    raw_inputs=tuple(session.paths),
-                    deps=calib_deps,
+    # Folder kind -> the tasks writing it, by session (None: the project's task).
+    writers: dict[type, dict[str | None, Task]] = {}
+
+    def add(stage: Stage, session: SessionSpec | None) -> str | None:
+        given = stage.sources(project, session)
+        if isinstance(given, NotPlanned):
+            return None if given.quiet else given.reason
+        name = session.name if session is not None else None
+        inputs = dict(given.inputs)
+        deps: list[str] = []
+        soft: list[str] = []
+        for read in stage.reads:
+            by_session = writers.get(read.kind, {})
+            if stage.per_session or None in by_session:
+                found = [by_session[k] for k in (name, None) if k in by_session][:1]
+                value: Any = found[0].out if found else None
+            else:  # a project stage reading a session kind: every session's
+                found = list(by_session.values())
+                value = [t.out for t in found]
+            if read.soft:
+                soft += [t.key for t in found]
+                continue
+            if found:
+                deps += [t.key for t in found]
+                inputs[read.name] = value
+            elif read.name not in inputs and not read.optional:
+                raise InputError(
+                    f"{project.path}: stage {stage.name} reads a {read.kind.kind} folder "
+                    "that no planned stage writes and the project does not give"
                 )
-            )
-            recording, slam_deps, raw = imported, (f"import:{session.name}", *calib_deps), ()
-        else:
-            recording, raw = session.paths[0], (session.paths[0],)
-            slam_deps = calib_deps
-        slam_dir = out / "sessions" / session.name
-        tasks.append(
-            Task(
-                key=f"slam:{session.name}",
-                stage="slam",
-                session=session.name,
-                out=slam_dir,
-                inputs={"recording": recording},
-                raw_inputs=raw,
-                deps=slam_deps,
-            )
+        key = stage.name if name is None else f"{stage.name}:{name}"
+        task = Task(
+            key=key,
+            stage=stage.name,
+            session=name,
+            out=stage.place(out, name),
+            inputs=inputs,
+            raw_inputs=tuple(given.raw),
+            deps=tuple(deps),
+            soft_deps=tuple(soft),
+            option_overrides=dict(given.overrides),
         )
-        slam_keys.append(f"slam:{session.name}")
-        slam_dirs.append(slam_dir)
-        if session.dive is not None:
-            tasks.append(
-                Task(
-                    key=f"depth:{session.name}",
-                    stage="depth",
-                    session=session.name,
-                    out=slam_dir / "depth",
-                    inputs={"slam": slam_dir, "dive": session.dive},
-                    raw_inputs=(session.dive,),
-                    deps=(f"slam:{session.name}",),
-                    option_overrides=(
-                        {"time_offset_s": session.dive_time_offset_s}
-                        if session.dive_time_offset_s is not None
-                        else {}
-                    ),
-                )
-            )
-        else:
-            depth_missing.append(session.name)
-    if depth_missing:
-        notes.append(f"depth: no dive log for {', '.join(depth_missing)} (not planned)")
-    depth_keys = [t.key for t in tasks if t.stage == "depth"]
-    merge_key: str | None = None
-    if project.targets:
-        merge_key = "merge"
-        tasks.append(
-            Task(
-                key="merge",
-                stage="merge",
-                session=None,
-                out=out / "merge",
-                inputs={"slam": list(slam_dirs)},
-                raw_inputs=tuple(project.targets),
-                deps=tuple(slam_keys),
-                soft_deps=tuple(depth_keys),
-            )
-        )
-    else:
-        notes.append("merge: no targets in the project (not planned)")
-    sfm_inputs: dict[str, Any] = {"slam": list(slam_dirs)}
-    if merge_key is not None:
-        sfm_inputs["merge"] = out / "merge"
-    tasks.append(
-        Task(
-            key="sfm",
-            stage="sfm",
-            session=None,
-            out=out / "sfm",
-            inputs=sfm_inputs,
-            deps=(*slam_keys, *([merge_key] if merge_key else [])),
-            soft_deps=tuple(depth_keys),
-        )
-    )
-    tasks.append(
-        Task(
-            key="dense",
-            stage="dense",
-            session=None,
-            out=out / "dense",
-            inputs={"sfm": out / "sfm"},
-            deps=("sfm",),
-        )
-    )
+        tasks.append(task)
+        writers.setdefault(stage.writes, {})[name] = task
+        return None
+
+    entries = list(registry.values())
+    k = 0
+    while k < len(entries):
+        if not entries[k].per_session:
+            reason = add(entries[k], None)
+            if reason:
+                notes.append(f"{entries[k].name}: {reason} (not planned)")
+            k += 1
+            continue
+        group = []
+        while k < len(entries) and entries[k].per_session:
+            group.append(entries[k])
+            k += 1
+        left_out: dict[str, dict[str, list[str]]] = {}
+        for session in project.sessions:
+            for stage in group:
+                reason = add(stage, session)
+                if reason:
+                    left_out.setdefault(stage.name, {}).setdefault(reason, []).append(session.name)
+        for stage in group:
+            for reason, names in left_out.get(stage.name, {}).items():
+                notes.append(f"{stage.name}: {reason} for {', '.join(names)} (not planned)")
     return tasks, notes
 
 
@@ -270,17 +214,15 @@ def run_project(
     project: Project,
     *,
     backend: Any | None = None,
-    adapters: dict[str, str] | None = None,
-    available: Callable[[str], bool] = stage_module_available,
+    stages: Mapping[str, Stage] | None = None,
     force: bool = False,
     echo: Callable[[str], None] | None = None,
 ) -> RunResult:
     """Run every task of `project` not already up to date; returns every task's outcome.
 
     backend: where tasks run (`dask_backend.make_backend`); None runs them in this process.
-    adapters: stage -> "module:function" (default: `postproc.pipeline.stages`).
-    available: whether a stage's module is built; a stage that is not stops its branch
-        (its tasks are "missing", those downstream "blocked"); nothing is faked.
+    stages: the stage registry (default `STAGES`; tests give entries with other run
+        functions).
     force: rerun every stage even when up to date.
     echo: where progress lines go (default: log.info).
     """
@@ -288,23 +230,20 @@ def run_project(
     from shared.progress import progress_bar
 
     say = echo or log.info
-    adapters = {**DEFAULT_ADAPTERS, **(adapters or {})}
+    registry = STAGES if stages is None else stages
     own_backend = backend is None
     backend = backend or InlineBackend()
-    tasks, notes = plan(project)
+    tasks, notes = plan(project, registry)
     project.output.mkdir(parents=True, exist_ok=True)
     (project.output / "logs").mkdir(exist_ok=True)
     hashes = ContentHashCache(project.output / ".wreckmap" / "hash-cache.json")
     outcomes: dict[str, TaskOutcome] = {}
     digests: dict[str, str] = {}
-    missing_modules: dict[str, str] = {}
     running: dict[Any, tuple[Task, float]] = {}
     context = {
-        "camchain": project.camchain
-        if project.calibration_recording is None
-        else project.output / "calibration" / "camchain.yaml",
+        # A camchain calibrated from a recording comes as the calibrate task's folder.
+        "camchain": project.camchain,
         "imu_yaml": project.imu_yaml,
-        "targets": list(project.targets),
         # Where per-image work goes (not part of the digest: outputs are the same).
         "parallel": getattr(backend, "parallel", None),
     }
@@ -328,23 +267,15 @@ def run_project(
                     )
                     bar.update(1)
                     continue
-                if not available(task.stage):
-                    module = STAGE_MODULES.get(task.stage, STAGE_OPTIONS[task.stage][0])
-                    missing_modules[task.stage] = module
-                    outcomes[task.key] = _outcome(
-                        task, "missing", f"stage {task.stage} is not built yet (module {module})"
-                    )
-                    bar.update(1)
-                    continue
                 try:
-                    options = project.options_for(task.stage)
+                    options = project.options_for(task.stage, registry[task.stage])
                     if task.option_overrides:
                         options = dataclasses.replace(options, **task.option_overrides)
                     upstream = {**digests}
                     for soft in task.soft_deps:
                         if outcomes[soft].status not in ("done", "skipped"):
                             upstream[soft] = outcomes[soft].status
-                    digest = task_digest(task, options, upstream, hashes, context)
+                    digest = task_digest(task, options, upstream, hashes)
                 except WreckmapError as error:
                     outcomes[task.key] = _outcome(task, "failed", str(error))
                     bar.update(1)
@@ -358,15 +289,14 @@ def run_project(
                 spec = TaskSpec(
                     key=task.key,
                     stage=task.stage,
-                    adapter=adapters[task.stage],
+                    run=registry[task.stage].run,
+                    writes=registry[task.stage].writes,
                     options=options,
                     inputs=task.inputs,
                     out=task.out,
                     digest=digest,
                     log_path=project.output / "logs" / f"{task.key.replace(':', '_')}.log",
-                    context={
-                        k: context[k] for k in ("camchain", "imu_yaml", "targets", "parallel")
-                    },
+                    context={k: context[k] for k in ("camchain", "imu_yaml", "parallel")},
                     force=force,
                     stamp={
                         "stage": task.stage,
@@ -418,14 +348,7 @@ def run_project(
         if own_backend:
             backend.close()
     _remove_partials(tasks)
-    result = RunResult([outcomes[t.key] for t in tasks], notes, missing_modules)
-    for stage, module in missing_modules.items():
-        not_run = sorted({o.stage for o in result.outcomes if o.status in ("missing", "blocked")})
-        say(
-            f"stopped at {stage}: module {module} is not built yet; not run: "
-            + ", ".join(s for s in STAGE_ORDER if s in not_run)
-        )
-    return result
+    return RunResult([outcomes[t.key] for t in tasks], notes)
 
 
 def session_progress(tasks: list[Task], outcomes: dict[str, TaskOutcome]) -> str:
@@ -477,16 +400,9 @@ def task_digest(
     options: Any,
     upstream: dict[str, str],
     hashes: ContentHashCache,
-    context: dict[str, Any],
 ) -> str:
     """SHA-256 of the stage, its options, its raw inputs' contents and its upstream digests."""
     raw = [*task.raw_inputs]
-    if task.stage in ("import", "slam"):
-        # A calibrated camchain comes through the calibrate task's digest instead.
-        given = [context.get("imu_yaml")]
-        if "calibrate" not in task.deps:
-            given.append(context.get("camchain"))
-        raw += [p for p in given if p is not None]
     document = {
         "format": FORMAT_VERSION,
         "stage": task.stage,
@@ -558,7 +474,7 @@ class ContentHashCache:
 
 
 def execute_task(spec: TaskSpec) -> dict[str, Any]:
-    """Run one stage on this worker: partial folder, adapter, stamp, atomic rename.
+    """Run one stage on this worker: partial folder, run function, stamp, atomic rename.
 
     Returns {"seconds", "worker"}. The partial folder is unique to this attempt, so a
     rerun after a killed worker never mixes with the dead attempt's files.
@@ -568,8 +484,6 @@ def execute_task(spec: TaskSpec) -> dict[str, Any]:
         # died after finishing): rerunning would swap the folder under running readers.
         stamp = json.loads((spec.out / STAMP_NAME).read_text(encoding="utf-8"))
         return {"seconds": float(stamp.get("seconds", 0.0)), "worker": stamp.get("worker", "")}
-    module_name, function_name = spec.adapter.split(":")
-    adapter = getattr(importlib.import_module(module_name), function_name)
     spec.out.parent.mkdir(parents=True, exist_ok=True)
     partial = (
         spec.out.parent / f".{spec.out.name}.partial-{spec.digest[:12]}-{uuid.uuid4().hex[:8]}"
@@ -579,10 +493,8 @@ def execute_task(spec: TaskSpec) -> dict[str, Any]:
     with _task_log(spec.log_path) as task_log:
         task_log.info("%s on %s: digest %s, output %s", spec.key, worker, spec.digest, spec.out)
         try:
-            adapter(copy.deepcopy(spec.options), spec.inputs, partial, context=spec.context)
-            from postproc.pipeline.stages import check_output
-
-            check_output(spec.stage, partial)
+            spec.run(copy.deepcopy(spec.options), spec.inputs, partial, context=spec.context)
+            check_output(spec.stage, spec.writes, partial)
             seconds = time.monotonic() - started
             stamp = {**spec.stamp, "seconds": seconds, "worker": worker, "finished": time.time()}
             write_text_atomic(partial / STAMP_NAME, json.dumps(stamp, indent=2) + "\n")

@@ -1,15 +1,25 @@
-"""The stage calls of the pipeline, one small adapter per stage (the only place they are made).
+"""The stage registry: every stage of `wreckmap-post run` declared once, in `STAGES`.
 
-Every adapter has the signature `(options, inputs, out, *, context) -> Path` where
+An entry (`Stage`) says what the stage is called, its options dataclass, the function
+that runs it, the hand-off folder kind it writes (`shared.folders`) and the kinds it
+reads, where its folder goes in the run's output, and what it takes from the project
+file. The runner's plan, digests and completeness checks, the `wreckmap-post`
+subcommands and the report's sections all derive from it: adding a stage is one entry
+here and one module.
+
+Every run function has the signature `(options, inputs, out, *, context) -> Path` where
 `inputs` maps input names to paths (or lists of paths), `out` is a folder that does not
-exist yet (the runner renames it into place when the adapter returns) and `context`
+exist yet (the runner renames it into place when the function returns) and `context`
 carries project-wide paths (calibration) and how per-image work spreads over the
 workers (`parallel`: SfM and dense get a map function, `postproc.pipeline.parallel`).
-They run on whichever worker the scheduler picks, so they take only paths and options:
-data moves through the shared filesystem.
+They run on whichever worker the scheduler picks, so they take only paths and options
+(data moves through the shared filesystem) and are top-level functions: a task carries
+its function to a Dask worker by reference.
 
-`import` runs `wreckmap-field gopro import` as a subprocess: the post-processing side
-never imports the field package.
+The registry imports no stage module: each entry names its options class through a
+small function that imports it when the options are needed, so that `--help` and the
+scheduler stay light. `import` runs `wreckmap-field gopro import` as a subprocess: the
+post-processing side never imports the field package.
 """
 
 from __future__ import annotations
@@ -18,16 +28,99 @@ import logging
 import shutil
 import subprocess
 import sys
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING, Any, Literal
 
+from postproc.commands import calibrate as calibrate_command
+from postproc.commands import dense as dense_command
+from postproc.commands import depth as depth_command
+from postproc.commands import merge as merge_command
+from postproc.commands import sfm as sfm_command
+from postproc.commands import slam as slam_command
 from shared.errors import StageError
+from shared.folders import (
+    CalibrationFolder,
+    DenseFolder,
+    DepthFolder,
+    HandoffFolder,
+    MergeFolder,
+    SessionFolder,
+    SfmFolder,
+    SlamFolder,
+)
 
 if TYPE_CHECKING:
     from postproc.pipeline.parallel import MapFn
+    from postproc.pipeline.project import Project, SessionSpec
 
 log = logging.getLogger(__name__)
+
+RunFn = Callable[..., Path]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Read:
+    """A folder kind a stage reads, under the input name `name`.
+
+    The folder comes from the planned task that writes that kind (the same session's
+    for a session stage; every session's, as a list, for a project stage reading a
+    session kind); without one, from the project file (`Stage.sources`), else nothing.
+    optional: the stage runs without it. soft: only waited for and digested, never
+    passed (the stage finds it itself, like depth/ inside a SLAM folder); its failure
+    does not block the stage.
+    """
+
+    kind: type[HandoffFolder]
+    name: str
+    optional: bool = False
+    soft: bool = False
+
+
+@dataclass(frozen=True, kw_only=True)
+class Sources:
+    """What the project file gives one task: inputs by name, the files hashed by
+    content, and options set for this task only (part of the digest)."""
+
+    inputs: dict[str, Any] = field(default_factory=dict)
+    raw: tuple[Path, ...] = ()
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, kw_only=True)
+class NotPlanned:
+    """Why a stage is left out of the plan (for a session or the project); quiet: say
+    nothing (the stage does not apply, like the import of a session that is no GoPro)."""
+
+    reason: str = ""
+    quiet: bool = False
+
+
+@dataclass(frozen=True, kw_only=True)
+class Stage:
+    """One stage of the pipeline (see the module docstring).
+
+    options_type: returns the options dataclass (imports the stage module).
+    per_session: one task per session (else one for the project).
+    place: where the stage's folder goes, from the run's output folder and the session.
+    sources: what the project file gives the task, or why it is not planned.
+    command: the `wreckmap-post` subcommand module of the stage (None: no subcommand).
+    """
+
+    name: str
+    options_type: Callable[[], type]
+    run: RunFn
+    writes: type[HandoffFolder]
+    reads: tuple[Read, ...] = ()
+    per_session: bool = False
+    place: Callable[[Path, str | None], Path]
+    sources: Callable[[Project, SessionSpec | None], Sources | NotPlanned]
+    command: ModuleType | None = None
+
+
+# ------------------------------------------------------------------------------ options
 
 
 @dataclass(kw_only=True)
@@ -45,20 +138,70 @@ class ImportOptions:
     compression: Literal["none", "zstd", "lz4"] = "none"
 
 
+def _calibrate_options() -> type:
+    from postproc.calibrate.stage import CalibrateOptions
+
+    return CalibrateOptions
+
+
+def _import_options() -> type:
+    return ImportOptions
+
+
+def _slam_options() -> type:
+    from postproc.slam.stage import SlamOptions
+
+    return SlamOptions
+
+
+def _depth_options() -> type:
+    from postproc.depth.stage import DepthOptions
+
+    return DepthOptions
+
+
+def _merge_options() -> type:
+    from postproc.merge.stage import MergeOptions
+
+    return MergeOptions
+
+
+def _sfm_options() -> type:
+    from postproc.sfm.stage import SfmOptions
+
+    return SfmOptions
+
+
+def _dense_options() -> type:
+    from postproc.dense.stage import DenseOptions
+
+    return DenseOptions
+
+
+# ------------------------------------------------------------------------------ run functions
+
+
+def _camchain(inputs: dict[str, Any], context: dict[str, Any]) -> Path | None:
+    """The calibrate stage's camchain when the project calibrates, else the project's."""
+    if inputs.get("calibration") is not None:
+        return CalibrationFolder(inputs["calibration"]).camchain
+    camchain = context.get("camchain")
+    return Path(camchain) if camchain is not None else None
+
+
 def run_calibrate(
     options: Any, inputs: dict[str, Any], out: Path, *, context: dict[str, Any]
 ) -> Path:
-    """A calibration recording and its AprilGrid -> `out/camchain.yaml` (Kalibr).
+    """A calibration recording and its AprilGrid -> a calibration folder `out` (Kalibr).
 
-    options: `postproc.pipeline.calibrate_options.CalibrateOptions`."""
+    options: `postproc.calibrate.stage.CalibrateOptions`."""
     from postproc.calibrate.stage import run_camera, run_imu
 
-    camchain = run_camera(options.camera, inputs["recording"], inputs["target"], out / "camera")
+    folder = CalibrationFolder(out)
+    camchain = run_camera(options.camera, inputs["recording"], inputs["target"], folder.camera)
     if options.estimate_imu:
-        camchain = run_imu(
-            options.imu, inputs["recording"], camchain, inputs["target"], out / "imu"
-        )
-    shutil.copyfile(camchain, out / "camchain.yaml")
+        camchain = run_imu(options.imu, inputs["recording"], camchain, inputs["target"], folder.imu)
+    shutil.copyfile(camchain, folder.camchain)
     return out
 
 
@@ -82,8 +225,9 @@ def run_import(
     ]
     if options.require_imu:
         command.append("--require-imu")
-    if context.get("camchain") is not None:
-        command += ["--camchain", str(context["camchain"])]
+    camchain = _camchain(inputs, context)
+    if camchain is not None:
+        command += ["--camchain", str(camchain)]
     if context.get("imu_yaml") is not None:
         command += ["--imu-yaml", str(context["imu_yaml"])]
     log.info("running %s", " ".join(command))
@@ -109,25 +253,26 @@ def run_slam(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[s
         options,
         inputs["recording"],
         out,
-        camchain=context.get("camchain"),
+        camchain=_camchain(inputs, context),
         imu_yaml=context.get("imu_yaml"),
         overwrite=True,
     )
 
 
 def run_depth(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[str, Any]) -> Path:
-    """A SLAM trajectory and a dive log -> the depth stage folder `out` (sync.json...)."""
+    """A SLAM trajectory and a dive log -> the depth folder `out` (sync.json...)."""
     from postproc.depth.stage import run
 
-    run(options, Path(inputs["slam"]) / "trajectory.tum", inputs["dive"], out, overwrite=True)
+    trajectory = SlamFolder(inputs["slam"]).trajectory
+    run(options, trajectory, inputs["dive"], out, overwrite=True)
     return out
 
 
 def run_merge(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[str, Any]) -> Path:
-    """SLAM folders (each with its depth/ beside) and targets -> the merge folder `out`."""
+    """SLAM folders (each with its depth/ inside) and targets -> the merge folder `out`."""
     from postproc.merge.stage import run
 
-    run(options, list(inputs["slam"]), list(context["targets"]), out, overwrite=True)
+    run(options, list(inputs["slam"]), list(inputs["targets"]), out, overwrite=True)
     return out
 
 
@@ -157,27 +302,178 @@ def stage_map(context: dict[str, Any]) -> MapFn:
     return make_map(context.get("parallel"))
 
 
-ADAPTERS = {
-    "calibrate": run_calibrate,
-    "import": run_import,
-    "slam": run_slam,
-    "depth": run_depth,
-    "merge": run_merge,
-    "sfm": run_sfm,
-    "dense": run_dense,
-}
+# ------------------------------------------------------------------ what the project gives
 
 
-def check_output(stage: str, out: Path) -> None:
-    """Refuse an output folder missing the file that marks the stage as done."""
-    marker = {
-        "calibrate": "camchain.yaml",
-        "slam": "stats.json",
-        "depth": "sync.json",
-        "merge": "transforms.json",
-        "sfm": "stats.json",
-        "dense": "dense.json",
-        "import": "session.yaml",
-    }.get(stage)
-    if marker is not None and not (out / marker).is_file():
-        raise StageError(f"{stage}: finished without writing {marker} in {out}")
+def _calibration_files(project: Project) -> tuple[Path, ...]:
+    """The calibration files the project gives (hashed by content): a camchain calibrated
+    from a recording comes through the calibrate task's digest instead."""
+    given = [project.imu_yaml]
+    if project.calibration_recording is None:
+        given.append(project.camchain)
+    return tuple(p for p in given if p is not None)
+
+
+def _calibrate_sources(project: Project, session: SessionSpec | None) -> Sources | NotPlanned:
+    if project.calibration_recording is None or project.calibration_target is None:
+        return NotPlanned(quiet=True)
+    return Sources(
+        inputs={"recording": project.calibration_recording, "target": project.calibration_target},
+        raw=(project.calibration_recording, project.calibration_target),
+    )
+
+
+def _import_sources(project: Project, session: SessionSpec | None) -> Sources | NotPlanned:
+    assert session is not None  # a session stage
+    if session.source != "gopro":
+        return NotPlanned(quiet=True)
+    return Sources(
+        inputs={"videos": list(session.paths)},
+        raw=(*session.paths, *_calibration_files(project)),
+    )
+
+
+def _slam_sources(project: Project, session: SessionSpec | None) -> Sources | NotPlanned:
+    assert session is not None
+    if session.source == "gopro":  # the import task's session folder
+        return Sources(raw=_calibration_files(project))
+    recording = session.paths[0]
+    return Sources(inputs={"recording": recording}, raw=(recording, *_calibration_files(project)))
+
+
+def _depth_sources(project: Project, session: SessionSpec | None) -> Sources | NotPlanned:
+    assert session is not None
+    if session.dive is None:
+        return NotPlanned(reason="no dive log")
+    overrides = {}
+    if session.dive_time_offset_s is not None:
+        overrides["time_offset_s"] = session.dive_time_offset_s
+    return Sources(inputs={"dive": session.dive}, raw=(session.dive,), overrides=overrides)
+
+
+def _merge_sources(project: Project, session: SessionSpec | None) -> Sources | NotPlanned:
+    if not project.targets:
+        return NotPlanned(reason="no targets in the project")
+    return Sources(inputs={"targets": list(project.targets)}, raw=tuple(project.targets))
+
+
+def _no_sources(project: Project, session: SessionSpec | None) -> Sources | NotPlanned:
+    return Sources()
+
+
+def _in_output(name: str) -> Callable[[Path, str | None], Path]:
+    def place(output: Path, session: str | None) -> Path:
+        return output / name
+
+    return place
+
+
+def _imports_place(output: Path, session: str | None) -> Path:
+    return output / "imports" / str(session)
+
+
+def _slam_place(output: Path, session: str | None) -> Path:
+    # Named after the session: merge and SfM name the sessions after their folders.
+    return output / "sessions" / str(session)
+
+
+def _depth_place(output: Path, session: str | None) -> Path:
+    # Inside the SLAM folder, where merge and SfM look for it.
+    return SlamFolder(_slam_place(output, session)).depth.path
+
+
+# ------------------------------------------------------------------------------ the registry
+
+_ENTRIES = (
+    Stage(
+        name="calibrate",
+        options_type=_calibrate_options,
+        run=run_calibrate,
+        writes=CalibrationFolder,
+        place=_in_output("calibration"),
+        sources=_calibrate_sources,
+        command=calibrate_command,
+    ),
+    Stage(
+        name="import",
+        options_type=_import_options,
+        run=run_import,
+        writes=SessionFolder,
+        reads=(Read(kind=CalibrationFolder, name="calibration", optional=True),),
+        per_session=True,
+        place=_imports_place,
+        sources=_import_sources,
+    ),
+    Stage(
+        name="slam",
+        options_type=_slam_options,
+        run=run_slam,
+        writes=SlamFolder,
+        reads=(
+            Read(kind=SessionFolder, name="recording"),
+            Read(kind=CalibrationFolder, name="calibration", optional=True),
+        ),
+        per_session=True,
+        place=_slam_place,
+        sources=_slam_sources,
+        command=slam_command,
+    ),
+    Stage(
+        name="depth",
+        options_type=_depth_options,
+        run=run_depth,
+        writes=DepthFolder,
+        reads=(Read(kind=SlamFolder, name="slam"),),
+        per_session=True,
+        place=_depth_place,
+        sources=_depth_sources,
+        command=depth_command,
+    ),
+    Stage(
+        name="merge",
+        options_type=_merge_options,
+        run=run_merge,
+        writes=MergeFolder,
+        reads=(
+            Read(kind=SlamFolder, name="slam"),
+            Read(kind=DepthFolder, name="depth", soft=True),
+        ),
+        place=_in_output("merge"),
+        sources=_merge_sources,
+        command=merge_command,
+    ),
+    Stage(
+        name="sfm",
+        options_type=_sfm_options,
+        run=run_sfm,
+        writes=SfmFolder,
+        reads=(
+            Read(kind=SlamFolder, name="slam"),
+            Read(kind=MergeFolder, name="merge", optional=True),
+            Read(kind=DepthFolder, name="depth", soft=True),
+        ),
+        place=_in_output("sfm"),
+        sources=_no_sources,
+        command=sfm_command,
+    ),
+    Stage(
+        name="dense",
+        options_type=_dense_options,
+        run=run_dense,
+        writes=DenseFolder,
+        reads=(Read(kind=SfmFolder, name="sfm"),),
+        place=_in_output("dense"),
+        sources=_no_sources,
+        command=dense_command,
+    ),
+)
+
+# Stage name -> entry, in the order data flows (the plan's order).
+STAGES: Mapping[str, Stage] = {entry.name: entry for entry in _ENTRIES}
+
+
+def check_output(stage: str, writes: type[HandoffFolder], out: Path) -> None:
+    """Refuse an output folder of `stage` missing the marker of the kind it writes."""
+    folder = writes(out)
+    if not folder.is_complete():
+        raise StageError(f"{stage}: finished without writing {folder.marker} in {out}")

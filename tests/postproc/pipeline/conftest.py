@@ -12,6 +12,7 @@ import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -43,8 +44,9 @@ def write_project(root: Path, *, extra: str = "", sessions: int = 2) -> Path:
 
 
 @pytest.fixture
-def fake_stages(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, str]:
-    """The fake adapters (module `fake_stages` on sys.path), markers in tmp_path/markers."""
+def fake_stages(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Any]:
+    """The registry with the fake run functions (module `fake_stages` on sys.path),
+    markers in tmp_path/markers."""
     monkeypatch.syspath_prepend(str(HERE))
     markers = tmp_path / "markers"
     markers.mkdir()
@@ -52,7 +54,7 @@ def fake_stages(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, st
     sys.modules.pop("fake_stages", None)
     import fake_stages
 
-    return dict(fake_stages.ADAPTERS)
+    return dict(fake_stages.STAGES)
 
 
 @pytest.fixture

@@ -1,7 +1,8 @@
-"""Deterministic stand-ins for the stage adapters, for runner and scheduler tests.
+"""Deterministic stand-ins for the stages' run functions, for runner and scheduler tests.
 
 Each writes a small output derived only from its inputs' contents and options (so two
-runs anywhere give identical files) plus the file the runner checks for. Environment:
+runs anywhere give identical files) plus the marker of the folder kind the registry
+says the stage writes. `STAGES` is the registry with these run functions. Environment:
 FAKE_STAGE_MARKERS (a folder: one `<key>.<pid>.<n>.started` file per call, holding the
 pid), FAKE_STAGE_SLEEP_S (seconds to sleep mid-stage), FAKE_STAGE_FAIL (a stage key to
 fail with a StageError). Imported by name (`fake_stages`) from this folder, by the test
@@ -11,6 +12,7 @@ process and by Dask workers started with this folder on PYTHONPATH.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -19,17 +21,9 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from postproc.pipeline.stages import STAGES as REAL_STAGES
+from postproc.pipeline.stages import Stage
 from shared.errors import StageError
-
-MARKER_FILES = {
-    "calibrate": "camchain.yaml",
-    "import": "session.yaml",
-    "slam": "stats.json",
-    "depth": "sync.json",
-    "merge": "transforms.json",
-    "sfm": "stats.json",
-    "dense": "dense.json",
-}
 
 
 def _content(path: Path) -> str:
@@ -66,7 +60,8 @@ def _fake(stage: str, options: Any, inputs: dict[str, Any], out: Path, key: str)
             for name, value in sorted(inputs.items())
         },
     }
-    (out / MARKER_FILES[stage]).write_text(json.dumps(record, sort_keys=True, indent=1))
+    marker = REAL_STAGES[stage].writes(out).marker_path
+    marker.write_text(json.dumps(record, sort_keys=True, indent=1))
     return out
 
 
@@ -80,23 +75,26 @@ def _key(stage: str, inputs: dict[str, Any]) -> str:
     return stage
 
 
-def _adapter(stage: str) -> Any:
-    def run(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[str, Any]) -> Path:
-        return _fake(stage, options, inputs, out, _key(stage, inputs))
-
-    run.__name__ = f"run_{stage}"
-    return run
+def _run(
+    stage: str, options: Any, inputs: dict[str, Any], out: Path, *, context: dict[str, Any]
+) -> Path:
+    return _fake(stage, options, inputs, out, _key(stage, inputs))
 
 
-run_calibrate = _adapter("calibrate")
-run_import = _adapter("import")
-run_slam = _adapter("slam")
-run_depth = _adapter("depth")
-run_merge = _adapter("merge")
-run_sfm = _adapter("sfm")
-run_dense = _adapter("dense")
+# One picklable run function per stage (a partial of a top-level function travels to a
+# Dask worker by reference).
+RUNS = {name: functools.partial(_run, name) for name in REAL_STAGES}
 
-ADAPTERS = {stage: f"fake_stages:run_{stage}" for stage in MARKER_FILES}
+
+def with_runs(runs: dict[str, Any]) -> dict[str, Stage]:
+    """The registry with the run functions of `runs` in place of the real ones."""
+    return {
+        name: dataclasses.replace(entry, run=runs[name]) if name in runs else entry
+        for name, entry in REAL_STAGES.items()
+    }
+
+
+STAGES = with_runs(RUNS)
 
 
 def run_sfm_copy(
@@ -107,7 +105,7 @@ def run_sfm_copy(
     import shutil
 
     shutil.copytree(os.environ["FAKE_SFM_SOURCE"], out)
-    (out / "stats.json").write_text("{}\n")
+    REAL_STAGES["sfm"].writes(out).marker_path.write_text("{}\n")
     return out
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import signal
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -37,12 +38,12 @@ def wait_for(predicate, timeout_s: float, what: str) -> None:
 
 @pytest.mark.slow
 def test_worker_killed_mid_stage_reruns_elsewhere(
-    project_file: Path, fake_stages: dict[str, str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    project_file: Path, fake_stages: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     markers = tmp_path / "markers"
     # The local reference run (no sleep).
     local = load_project(project_file)
-    assert run_project(local, adapters=fake_stages).exit_code() == 0
+    assert run_project(local, stages=fake_stages).exit_code() == 0
     expected = outputs(local.output)
     for p in markers.glob("*"):
         p.unlink()
@@ -79,7 +80,7 @@ def test_worker_killed_mid_stage_reruns_elsewhere(
         killer = threading.Thread(target=kill_first_slam_worker)
         killer.start()
         try:
-            result = run_project(remote, adapters=fake_stages, backend=backend)
+            result = run_project(remote, stages=fake_stages, backend=backend)
         finally:
             killer.join()
             backend.close()

@@ -24,7 +24,7 @@ from shared.errors import InputError
 
 
 @pytest.fixture
-def helpers(fake_stages: dict[str, str]) -> Any:
+def helpers(fake_stages: dict[str, Any]) -> Any:
     """The per-item functions of `fake_stages` (importable in spawned processes)."""
     import fake_stages as module
 

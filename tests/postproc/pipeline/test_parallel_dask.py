@@ -55,24 +55,25 @@ def dense_outputs(root: Path) -> dict[str, bytes]:
 
 @pytest.mark.slow
 def test_dense_images_spread_over_two_dask_workers(
-    tmp_path: Path, fake_stages: dict[str, str], monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, fake_stages: dict[str, Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     fixtures = _dense_fixtures()
-    from field.sim.scene import build_wreck_scene
+    from sim.scene import build_wreck_scene
 
     scene = build_wreck_scene(seed=3, texel_m=0.02, seafloor_texel_m=0.06)
     sfm = fixtures.build_sfm(tmp_path / "sfm", scene, fixtures.hull_poses(7))
     monkeypatch.setenv("FAKE_SFM_SOURCE", str(sfm.folder))
     monkeypatch.setenv("WRECKMAP_PROGRESS", "0")
-    adapters = {
-        **fake_stages,
-        "sfm": "fake_stages:run_sfm_copy",
-        "dense": "postproc.pipeline.stages:run_dense",
-    }
+    import fake_stages as module
+
+    from postproc.pipeline.stages import run_dense
+
+    # The real dense stage on a copied SfM folder; the other stages faked.
+    stages = module.with_runs({**module.RUNS, "sfm": module.run_sfm_copy, "dense": run_dense})
     project_file = write_project(tmp_path / "proj", extra=DENSE_OPTIONS)
 
     local = load_project(project_file)
-    assert run_project(local, adapters=adapters).exit_code() == 0
+    assert run_project(local, stages=stages).exit_code() == 0
     expected = dense_outputs(local.output)
     assert len(expected) == 2 + 2 * 7
     local_report = json.loads((local.output / "dense" / "dense.json").read_text())
@@ -94,7 +95,7 @@ def test_dense_images_spread_over_two_dask_workers(
             backend.client.wait_for_workers(2, timeout=60)
             remote = load_project(project_file)
             remote.output = tmp_path / "dask-out"
-            result = run_project(remote, adapters=adapters, backend=backend)
+            result = run_project(remote, stages=stages, backend=backend)
         finally:
             backend.close()
         pids = {str(w.pid) for w in cluster.workers}

@@ -9,7 +9,6 @@ import pytest
 
 from postproc.pipeline.project import (
     ClusterSpec,
-    StageModuleMissingError,
     build_stage_options,
     load_project,
 )
@@ -149,16 +148,6 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
     (tmp_path / "list.yaml").write_text("- a\n")
     with pytest.raises(InputError, match=r"list.yaml: expected a mapping"):
         load_project(tmp_path / "list.yaml")
-
-
-def test_missing_stage_module_is_named(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    from postproc.pipeline import project as project_module
-
-    monkeypatch.setitem(project_module.STAGE_OPTIONS, "sfm", ("postproc.nonexistent_sfm", "X"))
-    with pytest.raises(
-        StageModuleMissingError, match=r"postproc\.nonexistent_sfm is not built yet"
-    ):
-        build_stage_options(tmp_path / "p.yaml", "sfm", {})
 
 
 def test_example_project_keys_are_the_real_ones() -> None:
