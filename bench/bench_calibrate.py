@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python bench/bench_calibrate.py [--seeds 3] [--quick]
 
-1. Intrinsics from rendered AprilGrid views (field.sim renderer, 6x6 grid of 88 mm
+1. Intrinsics from rendered AprilGrid views (sim renderer, 6x6 grid of 88 mm
    tags, 1.5 DN sensor noise): pinhole-radtan at 640x480 (20 views) and
    pinhole-equidistant at 640x480 (14 views); relative errors of fx, fy, cx, cy and the
    RMS reprojection error. Target: < 0.5 %.

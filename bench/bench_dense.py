@@ -5,7 +5,7 @@
         [--no-view-selection] [--min-baseline-rel 0.3] [--min-rotation-deg 20]
         [--project-keyframes 5000] [--max-neighbours 4] [--far-neighbours 2]
 
-Simulates session 0 of the survey (`field.sim.survey`: diver route along the starboard
+Simulates session 0 of the survey (`sim.survey`: diver route along the starboard
 hull, underwater image model with noise), picks keyframes every `--keyframe-step` metres
 or 10 degrees on the true trajectory, writes an SfM folder with the TRUE poses (so the
 figures measure the dense stage alone, not SfM drift) and sparse points, runs
@@ -40,9 +40,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from field.sim.mesh import scene_mesh
-from field.sim.render import Renderer
-from field.sim.survey import SurveyOptions, SurveySimulator
 from postproc.dense.colmap_io import read_pinhole_views, write_known_pose_model
 from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, visibility
 from postproc.dense.fusion import FusionOptions
@@ -50,6 +47,9 @@ from postproc.dense.ply import read_ply
 from postproc.dense.stage import DenseOptions, run
 from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
 from shared.calibration.cameras import PinholeRadtan
+from sim.mesh import scene_mesh
+from sim.render import Renderer
+from sim.survey import SurveyOptions, SurveySimulator
 
 
 def pick_keyframes(poses: np.ndarray, step_m: float, step_deg: float = 10.0) -> list[int]:

@@ -13,7 +13,7 @@ smaller, depth error at most 5 cm.
 Part 2: VIO with a random walk in z; world z RMSE against the truth after the
 sync alone and after depth factors; writes bench-output/depth_factors.png.
 Part 3: both methods on a real dive's shape.
-Part 4: `make demo`'s shape (field.sim survey, a minute of video, six 10 s
+Part 4: `make demo`'s shape (sim survey, a minute of video, six 10 s
 samples, both dives of the day in one folder): how often the old selection
 rule (least robust scale) and the current one (ambiguity measured, clock prior
 when needed) return a wrong offset without saying so, refuse, or need the prior.
@@ -513,7 +513,7 @@ def part_real_shape(seeds: int) -> list[Record]:
 
 def part_short_dives(seeds: int) -> None:
     """`make demo`'s dives: old rule against the current one, with VIO-like z noise."""
-    from field.sim.survey import SurveyOptions, SurveySimulator
+    from sim.survey import SurveyOptions, SurveySimulator
 
     print(
         f"\nPart 4: demo-shaped dives (60 s video, 6 samples), seeds 1..{seeds}, 2 sessions each;"

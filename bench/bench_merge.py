@@ -15,7 +15,7 @@ error per pass (0.2 deg, 2 cm), a session tilt (0.05 deg) and 10 % outlier
 keyframes (3-12 deg, 0.15-0.6 m). The session and target yaws stay within
 +-120 deg so the paper's Euler means never meet the +-180 wrap.
 
-Wreck (`--scene fieldsim`): `field.sim`'s wreck, hull grids, diver routes and
+Wreck (`--scene fieldsim`): `sim`'s wreck, hull grids, diver routes and
 renderer; keyframes at 1 Hz where a grid is in view; the SLAM error is a random
 walk from the session start (see `make_fieldsim_survey`), so a target filmed
 late carries more drift than one filmed early.
@@ -203,7 +203,7 @@ def make_fieldsim_survey(
     yaw_drift_only: bool = True,
     every_keyframe: bool = False,
 ) -> tuple[list[Path], list[Path], SurveyTruth]:
-    """SLAM-like folders from the survey simulator (`field.sim`): its wreck, its two hull
+    """SLAM-like folders from the survey simulator (`sim`): its wreck, its two hull
     grids, its diver routes and renderer; SLAM errors added to the true camera poses.
 
     Keyframes at 1 Hz where a grid is within 3.5 m and at least half in view. SLAM error:
@@ -215,10 +215,10 @@ def make_fieldsim_survey(
     """
     import cv2
 
-    from field.sim.survey import SurveyOptions as SimOptions
-    from field.sim.survey import SurveySimulator
     from shared.calibration.kalibr import write_target_yaml
     from shared.geometry import make_pose, so3_exp
+    from sim.survey import SurveyOptions as SimOptions
+    from sim.survey import SurveySimulator
 
     sim = SurveySimulator(
         SimOptions(
@@ -525,7 +525,7 @@ def main() -> int:
         "--scene",
         choices=("synthetic", "fieldsim"),
         default="synthetic",
-        help="synthetic: postproc.merge.synthetic surveys; fieldsim: field.sim's wreck and routes",
+        help="synthetic: postproc.merge.synthetic surveys; fieldsim: sim's wreck and routes",
     )
     parser.add_argument("--duration", type=float, default=240.0, help="fieldsim: s per dive")
     parser.add_argument(

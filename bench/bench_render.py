@@ -6,7 +6,7 @@
 Prints the scene build time, the per-frame render time (one process), the PNG encoding
 time, and the projected wall time of the default survey (2 sessions x 60 s x 15 fps =
 1800 frames) on 2 worker processes. With --survey-seconds it also times a real
-`field.sim.survey.run` of that length (1 session, 2 workers, video included).
+`sim.survey.run` of that length (1 session, 2 workers, video included).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from field.sim.survey import SurveyOptions, SurveySimulator, run
+from sim.survey import SurveyOptions, SurveySimulator, run
 
 
 def main() -> None:

@@ -3,7 +3,7 @@
 Run: .venv/bin/python bench/bench_sfm.py [--keyframes 600] [--fractions 0.27,0.54,1]
      [--baseline-fractions 0.54] [--work DIR]
 
-Two simulated sessions (field.sim) rendered at 640x360, keyframes at 2 Hz, with
+Two simulated sessions (sim) rendered at 640x360, keyframes at 2 Hz, with
 SLAM-like priors: a path-proportional biased random walk (2 % of the distance
 travelled) plus heading drift and jitter, placed in the world by their true
 `T_W_S` (as the merge stage would). Our stage runs on the first `fraction` of

@@ -14,7 +14,7 @@ that the sliding-window smoother keeps both flat, then the ATE.
 
 1. Feature-level sequences (postproc.slam.synthetic: exact tracks with pixel
    noise, simulated IMU): the backend alone, no images.
-2. Rendered surveys (field.sim, the same simulator `wreckmap-field sim survey`
+2. Rendered surveys (sim, the same simulator `wreckmap-field sim survey`
    runs; rendered once into --work and reused): the whole stage, images to
    trajectory, as the CLI runs it.
 
@@ -57,8 +57,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from field.sim.survey import SurveyOptions
-from field.sim.survey import run as render_survey
 from postproc.slam.backend import BackendOptions
 from postproc.slam.estimator import EstimatorOptions, SlamEstimator
 from postproc.slam.frontend import FrontendOptions
@@ -71,6 +69,8 @@ from shared.errors import StageError
 from shared.formats.euroc import read_euroc
 from shared.formats.tum import read_tum
 from shared.trajectory import Trajectory, ate
+from sim.survey import SurveyOptions
+from sim.survey import run as render_survey
 
 
 def _row(
@@ -243,7 +243,7 @@ def rendered(
             ),
             survey,
         )
-    print(f"-- rendered survey (field.sim), frontend width {width} px, {os.cpu_count()} CPUs")
+    print(f"-- rendered survey (sim), frontend width {width} px, {os.cpu_count()} CPUs")
     for folder in sorted(survey.glob("session_*")):
         euroc = folder / "euroc"
         data = read_euroc(euroc)

@@ -41,8 +41,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _survey(args: argparse.Namespace) -> int:
-    from field.sim.survey import SurveyOptions, run
     from shared.errors import InputError
+    from sim.survey import SurveyOptions, run
 
     try:
         options = SurveyOptions(

@@ -1,6 +1,6 @@
 """A simulated OAK-like rig: rendered, encoded camera frames, IMU and depth in real time.
 
-The frames come from the survey simulator (`field.sim`: the wreck scene rendered through
+The frames come from the survey simulator (`sim`: the wreck scene rendered through
 the camera model along a diver trajectory) and the IMU from its IMU synthesis on the same
 trajectory, so images and IMU agree. Rendering is far slower than real time, so a clip of
 `clip_s` seconds is rendered and encoded once (H.264/H.265 with PyAV's libx264/libx265,
@@ -180,7 +180,7 @@ def clip_path(options: SimOptions) -> Path:
 
 
 def _survey(options: SimOptions) -> Any:
-    from field.sim.survey import SurveyOptions, SurveySimulator
+    from sim.survey import SurveyOptions, SurveySimulator
 
     return SurveySimulator(
         SurveyOptions(
@@ -314,8 +314,8 @@ def prepare_clip(options: SimOptions) -> Path:
                 Imu(
                     stamp_ns=int(imu.stamps_ns[k]) - start_ns,
                     frame_id="imu0",
-                    angular_velocity_rad_s=np.asarray(imu.gyro_radps[k], dtype=np.float64),
-                    linear_acceleration_m_s2=np.asarray(imu.accel_mps2[k], dtype=np.float64),
+                    angular_velocity_rad_s=np.asarray(imu.gyro_rad_s[k], dtype=np.float64),
+                    linear_acceleration_m_s2=np.asarray(imu.accel_m_s2[k], dtype=np.float64),
                 ),
             )
         if options.depth_rate_hz > 0:
@@ -440,7 +440,7 @@ class SimSource:
         o = self.options
         return {
             "kind": "sim",
-            "model": "simulated OAK-like rig (field.sim renderer + IMU synthesis)",
+            "model": "simulated OAK-like rig (sim renderer + IMU synthesis)",
             "serial": f"SIM-{o.seed:04d}",
             "settings": asdict(o),
             "clock": {
@@ -452,8 +452,8 @@ class SimSource:
         }
 
     def calibration(self) -> tuple[list[Any], Any] | None:
-        from field.sim.survey import default_cam_from_imu, default_camera, default_imu_noise
         from shared.calibration.kalibr import CameraCalibration
+        from sim.survey import default_cam_from_imu, default_camera, default_imu_noise
 
         o = self.options
         cam0_from_imu = default_cam_from_imu()

@@ -14,14 +14,14 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from field.sim.imu import simulate_imu
-from field.sim.render import Renderer, WaterModel
-from field.sim.scene import TargetPlacement, WreckScene
-from field.sim.spline import SplineTrajectory
-from field.sim.survey import default_cam_from_imu, default_imu_noise
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.cameras import CameraModel, PinholeEquidistant, PinholeRadtan
 from shared.geometry import so3_exp
+from sim.imu import simulate_imu
+from sim.render import Renderer, WaterModel
+from sim.scene import TargetPlacement, WreckScene
+from sim.spline import SplineTrajectory
+from sim.survey import default_cam_from_imu, default_imu_noise
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -222,7 +222,7 @@ def recording(
         imu_stamps.astype(np.int64),
         noise=noise,
         rng=rng,
-        gyro_bias0_radps=(0.004, -0.003, 0.002) if imu_noise else (0.0, 0.0, 0.0),
+        gyro_bias0_rad_s=(0.004, -0.003, 0.002) if imu_noise else (0.0, 0.0, 0.0),
     )
     images: list[npt.NDArray[np.uint8]] = []
     if render:
@@ -239,7 +239,7 @@ def recording(
         images=images,
         world_from_cam=world_from_cam,
         imu_stamps_ns=samples.stamps_ns,
-        gyro_rad_s=samples.gyro_radps,
-        accel_m_s2=samples.accel_mps2,
+        gyro_rad_s=samples.gyro_rad_s,
+        accel_m_s2=samples.accel_m_s2,
         trajectory=trajectory,
     )

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from field.sim.imu import simulate_imu
-from field.sim.survey import default_cam_from_imu, default_imu_noise
 from postproc.calibrate.two_camera import RigSyncOptions, estimate_rig_sync
 from shared.errors import StageError
 from shared.geometry import rotation_angle_rad, so3_exp
+from sim.imu import simulate_imu
+from sim.survey import default_cam_from_imu, default_imu_noise
 
 from .simulation import START_NS, sweep_trajectory
 
@@ -32,11 +32,11 @@ def two_gyros(seed: int, offset_s: float, duration_s: float = 20.0, duration1_s=
         true1,
         noise=default_imu_noise(197.0),
         rng=rng,
-        gyro_bias0_radps=(0.01, 0.0, -0.01),
+        gyro_bias0_rad_s=(0.01, 0.0, -0.01),
     )
     imu1_from_imu0 = so3_exp(rng.normal(0.0, 1.0, 3))
     stamps1 = true1 + round(offset_s * 1e9)
-    return true0, imu0.gyro_radps, stamps1, imu1.gyro_radps @ imu1_from_imu0.T, imu1_from_imu0
+    return true0, imu0.gyro_rad_s, stamps1, imu1.gyro_rad_s @ imu1_from_imu0.T, imu1_from_imu0
 
 
 @pytest.mark.parametrize(("seed", "offset_s"), [(0, 3.1234567), (1, -17.25), (2, 0.0004)])

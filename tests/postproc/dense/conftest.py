@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from field.sim.render import Renderer, WaterModel
-from field.sim.scene import WreckScene, build_wreck_scene
 from postproc.dense.colmap_io import write_known_pose_model
 from shared.calibration.cameras import PinholeRadtan
+from sim.render import Renderer, WaterModel
+from sim.scene import WreckScene, build_wreck_scene
 
 # A small wide camera with barrel distortion, like a scaled-down GoPro.
 CAMERA = PinholeRadtan(

@@ -12,8 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from field.sim.mesh import scene_mesh
-from field.sim.scene import WreckScene
 from postproc.dense.colmap_io import (
     DenseWorkspace,
     read_fusion_visibility,
@@ -26,6 +24,8 @@ from postproc.dense.meshing import MeshingOptions
 from postproc.dense.ply import read_ply
 from postproc.dense.stage import DenseOptions, choose_backend, read_depth_map, run
 from shared.errors import InputError, OutputExistsError, StageError
+from sim.mesh import scene_mesh
+from sim.scene import WreckScene
 
 from .conftest import CAMERA, SyntheticSfm, build_sfm, hull_poses
 

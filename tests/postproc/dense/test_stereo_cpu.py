@@ -7,8 +7,6 @@ import warnings
 import numpy as np
 import pytest
 
-from field.sim.render import Renderer, WaterModel
-from field.sim.scene import WreckScene
 from postproc.dense.stereo_cpu import (
     CpuStereoOptions,
     StereoView,
@@ -20,6 +18,8 @@ from postproc.dense.stereo_cpu import (
     rectifying_rotations,
 )
 from shared.calibration.cameras import PinholeRadtan
+from sim.render import Renderer, WaterModel
+from sim.scene import WreckScene
 
 from .conftest import hull_poses
 

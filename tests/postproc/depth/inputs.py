@@ -58,11 +58,11 @@ class DemoSession:
 
 
 def demo_session(folder: Path, *, seed: int, session: int, duration_s: float = 60.0) -> DemoSession:
-    """`field.sim`'s survey as `make demo` runs it (two dives, `duration_s` filmed each).
+    """`sim`'s survey as `make demo` runs it (two dives, `duration_s` filmed each).
 
     A minute of video overlaps six 10 s dive-computer samples.
     """
-    from field.sim.survey import SurveyOptions, SurveySimulator
+    from sim.survey import SurveyOptions, SurveySimulator
 
     sim = SurveySimulator(SurveyOptions(sessions=2, duration_s=duration_s, seed=seed, video=False))
     dives = folder / "dives"

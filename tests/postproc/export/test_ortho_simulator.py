@@ -11,15 +11,15 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from field.sim.mesh import scene_mesh
-from field.sim.scene import WreckScene, build_wreck_scene
 from postproc.dense.ply import PlyData, write_ply
 from postproc.export.stage import OrthoOptions, write_ortho
+from sim.mesh import scene_mesh
+from sim.scene import WreckScene, build_wreck_scene
 
 from .test_ortho import read_geotiff
 
 HERE = Path(__file__).resolve().parent
-# From field/sim/scene.py: (x0, x1, y0, y1, top z) of the two hatches on the fore deck.
+# From sim/scene.py: (x0, x1, y0, y1, top z) of the two hatches on the fore deck.
 HATCHES = {"hatch_1": (0.8, 2.6, -1.5, 1.5, -11.4), "hatch_2": (5.0, 7.2, -1.5, 1.5, -11.5)}
 
 

@@ -17,11 +17,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from field.sim.survey import SurveyOptions, SurveySimulator
 from shared.calibration.kalibr import write_camchain
 from shared.formats.tum import write_tum
 from shared.geometry import invert_pose, make_pose, so3_exp
 from shared.trajectory import Trajectory
+from sim.survey import SurveyOptions, SurveySimulator
 
 FloatArray = npt.NDArray[np.float64]
 

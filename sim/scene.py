@@ -1,6 +1,6 @@
 """The simulated wreck: axis-aligned boxes on a flat seafloor, two AprilGrids, textures.
 
-Pure math (no I/O; `field.sim.mesh` writes the truth mesh). World frame W of
+Pure math (no I/O; `sim.mesh` writes the truth mesh). World frame W of
 docs/conventions.md: z up, z = 0 at the sea surface, metres. The wreck lies along x on a
 seafloor at z = -17 m: a hull of stepped boxes (bow, stern, a collapsed midship section),
 deck plates at about 12 m depth, a superstructure up to 8.4 m depth, a mast, hatch
@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from field.sim import textures
 from shared.calibration.aprilgrid import AprilGridTarget, texture_margin_m
+from sim import textures
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -14,8 +14,8 @@ for the IMU samples.
 `wreckmap-field sim survey --out DIR` (or `survey.run`) writes::
 
     DIR/
-      truth.json              everything true, JSON (format "wreckmap-sim-truth", version 1):
-                              world (frame, gravity_w_mps2, depth_relation "depth_m = -z_W of
+      truth.json              everything true, JSON (format "wreckmap-sim-truth", version 2):
+                              world (frame, gravity_w_m_s2, depth_relation "depth_m = -z_W of
                               the body origin", seafloor_z_m), targets (name, tag_id_offset,
                               rows, cols, tag_size_m, tag_spacing_ratio, world_from_target 4x4,
                               yaml), camera (Kalibr model, intrinsics, distortion, fps,

@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from field.sim.render import Renderer, WaterModel
-from field.sim.scene import WreckScene
 from shared.calibration.aprilgrid import OPENCV_CORNER_ORDER
 from shared.calibration.cameras import PinholeEquidistant, PinholeRadtan
+from sim.render import Renderer, WaterModel
+from sim.scene import WreckScene
 
 
 def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from field.sim.survey import SurveyOptions, SurveySimulator, depth_png_mm, run
 from shared.errors import OutputExistsError
+from sim.survey import SurveyOptions, SurveySimulator, depth_png_mm, run
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -167,7 +167,7 @@ def test_extrinsic_and_time_offset_are_parameters() -> None:
 
 
 def test_render_worker_needs_a_simulator() -> None:
-    import field.sim.survey as survey_module
+    import sim.survey as survey_module
 
     saved = survey_module._WORKER_SIM
     survey_module._WORKER_SIM = None

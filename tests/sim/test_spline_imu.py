@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.interpolate import BSpline
 
-from field.sim.imu import GRAVITY_W_MPS2, ideal_imu, simulate_imu
-from field.sim.motion import builtin_route, diver_trajectory
-from field.sim.spline import SplineTrajectory, bspline_basis_matrix
-from field.sim.survey import default_cam_from_imu, default_imu_noise
 from shared.geometry import so3_exp, so3_log
+from sim.imu import GRAVITY_W_M_S2, ideal_imu, simulate_imu
+from sim.motion import builtin_route, diver_trajectory
+from sim.spline import SplineTrajectory, bspline_basis_matrix
+from sim.survey import default_cam_from_imu, default_imu_noise
 
 START_NS = 1_700_000_000_000_000_000
 
@@ -36,7 +36,7 @@ def test_position_matches_scipy_bspline(order: int) -> None:
     reference = BSpline(knots, spline.position_ctrl_m, order - 1)
     t_s = (t - spline.start_ns) * 1e-9
     np.testing.assert_allclose(spline.position_m(t), reference(t_s), atol=1e-12)
-    np.testing.assert_allclose(spline.acceleration_mps2(t), reference.derivative(2)(t_s), atol=1e-9)
+    np.testing.assert_allclose(spline.acceleration_m_s2(t), reference.derivative(2)(t_s), atol=1e-9)
     np.testing.assert_allclose(bspline_basis_matrix(order).sum(axis=0)[0], 1.0)
 
 
@@ -46,7 +46,7 @@ def test_angular_velocity_matches_finite_differences() -> None:
     h = 1000
     before, after = spline.rotation(t - h), spline.rotation(t + h)
     numeric = so3_log(np.swapaxes(before, 1, 2) @ after) / (2 * h * 1e-9)
-    np.testing.assert_allclose(spline.angular_velocity_body_radps(t), numeric, atol=1e-6)
+    np.testing.assert_allclose(spline.angular_velocity_body_rad_s(t), numeric, atol=1e-6)
 
 
 def test_time_outside_the_spline_raises() -> None:
@@ -86,13 +86,13 @@ def integrate(stamps_ns, gyro, accel, rotation0, position0, velocity0):  # type:
     and position with the trapezoidal rule on the world acceleration."""
     dt = np.diff(stamps_ns) * 1e-9
     rotation, position, velocity = rotation0.copy(), position0.copy(), velocity0.copy()
-    accel_w_prev = rotation @ accel[0] + GRAVITY_W_MPS2
+    accel_w_prev = rotation @ accel[0] + GRAVITY_W_M_S2
     positions = [position.copy()]
     for k in range(len(dt)):
         h = dt[k]
         w0, w1 = gyro[k], gyro[k + 1]
         rotation = rotation @ so3_exp(0.5 * (w0 + w1) * h + np.cross(w0, w1) * h * h / 12.0)
-        accel_w = rotation @ accel[k + 1] + GRAVITY_W_MPS2
+        accel_w = rotation @ accel[k + 1] + GRAVITY_W_M_S2
         position = position + velocity * h + h * h / 6.0 * (2 * accel_w_prev + accel_w)
         velocity = velocity + 0.5 * h * (accel_w_prev + accel_w)
         accel_w_prev = accel_w
@@ -108,7 +108,7 @@ def test_noise_free_imu_integrates_back_to_the_trajectory() -> None:
     stamps = START_NS + np.arange(0, 10 * 200 + 1) * 5_000_000
     gyro, accel = ideal_imu(trajectory, stamps)
     poses = trajectory.world_from_body(stamps)
-    velocity0 = trajectory.velocity_mps(stamps[:1])[0]
+    velocity0 = trajectory.velocity_m_s(stamps[:1])[0]
     rotation, positions = integrate(
         stamps, gyro, accel, poses[0, :3, :3], poses[0, :3, 3], velocity0
     )
@@ -130,21 +130,21 @@ def test_imu_noise_has_the_kalibr_discrete_sigmas() -> None:
     ideal_gyro, ideal_accel = ideal_imu(trajectory, stamps)
     samples = simulate_imu(
         trajectory, stamps, noise=noise, rng=np.random.default_rng(0),
-        gyro_bias0_radps=(0.01, 0.0, 0.0),
+        gyro_bias0_rad_s=(0.01, 0.0, 0.0),
     )  # fmt: skip
-    white_gyro = samples.gyro_radps - ideal_gyro - samples.gyro_bias_radps
-    white_accel = samples.accel_mps2 - ideal_accel - samples.accel_bias_mps2
+    white_gyro = samples.gyro_rad_s - ideal_gyro - samples.gyro_bias_rad_s
+    white_accel = samples.accel_m_s2 - ideal_accel - samples.accel_bias_m_s2
     np.testing.assert_allclose(
         white_gyro.std(), noise.gyroscope_noise_density * np.sqrt(200.0), rtol=0.05
     )
     np.testing.assert_allclose(
         white_accel.std(), noise.accelerometer_noise_density * np.sqrt(200.0), rtol=0.05
     )
-    steps = np.diff(samples.accel_bias_mps2, axis=0)
+    steps = np.diff(samples.accel_bias_m_s2, axis=0)
     np.testing.assert_allclose(
         steps.std(), noise.accelerometer_random_walk / np.sqrt(200.0), rtol=0.05
     )
-    assert samples.gyro_bias_radps[0, 0] == 0.01
+    assert samples.gyro_bias_rad_s[0, 0] == 0.01
 
 
 def test_noise_without_rng_raises() -> None:
@@ -158,10 +158,10 @@ def test_diver_moves_like_a_diver() -> None:
         cam_from_imu=default_cam_from_imu(), rng=np.random.default_rng(1),
     )  # fmt: skip
     t = START_NS + np.arange(0, 30 * 50) * 20_000_000
-    speed = np.linalg.norm(trajectory.velocity_mps(t), axis=1)
+    speed = np.linalg.norm(trajectory.velocity_m_s(t), axis=1)
     assert 0.2 <= speed.mean() <= 0.5
     assert speed.max() < 0.8
-    assert np.abs(trajectory.angular_velocity_body_radps(t)).max() < 1.5
+    assert np.abs(trajectory.angular_velocity_body_rad_s(t)).max() < 1.5
     with pytest.raises(ValueError, match="duration_s"):
         diver_trajectory(
             builtin_route(0), start_ns=0, duration_s=0.0, cam_from_imu=np.eye(4),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from field.sim.scene import WreckScene, build_wreck_scene
+from sim.scene import WreckScene, build_wreck_scene
 
 
 @pytest.fixture(scope="session")

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from field.sim.spline import SplineTrajectory
 from shared.geometry import so3_exp
+from sim.spline import SplineTrajectory
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -168,7 +168,7 @@ def diver_trajectory(
     duration_s: float,
     cam_from_imu: npt.ArrayLike,
     rng: np.random.Generator,
-    speed_mps: float = 0.35,
+    speed_m_s: float = 0.35,
     knot_interval_s: float = 0.2,
     order: int = 6,
     margin_s: float = 2.0,
@@ -177,7 +177,7 @@ def diver_trajectory(
 
     Valid over [start_ns - margin_s, start_ns + duration_s + margin_s] so image times shifted
     by the camera-IMU time offset and the IMU's first and last samples stay inside.
-    speed_mps: mean swimming speed (m/s; the route is swum back when it is too short).
+    speed_m_s: mean swimming speed (m/s; the route is swum back when it is too short).
     """
     if duration_s <= 0:
         raise ValueError(f"duration_s must be positive, got {duration_s}")
@@ -197,7 +197,7 @@ def diver_trajectory(
     # Fin kicks: speed pulses at ~0.45 Hz around the mean, never negative.
     kick_hz = rng.uniform(0.38, 0.5)
     phase = rng.uniform(0, 2 * np.pi)
-    speed = speed_mps * (1.0 + 0.25 * np.sin(2 * np.pi * kick_hz * fine_t + phase))
+    speed = speed_m_s * (1.0 + 0.25 * np.sin(2 * np.pi * kick_hz * fine_t + phase))
     speed += _smooth_noise(rng, fine_t, 0.04, 4.0)
     arc = np.cumsum(np.maximum(speed, 0.05)) * _FINE_DT_S
     arc -= np.interp(0.0, fine_t, arc)

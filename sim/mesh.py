@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from field.sim.scene import FACE_UV_AXES, WreckScene, face_hidden
 from shared.fsutil import atomic_path
+from sim.scene import FACE_UV_AXES, WreckScene, face_hidden
 
 FloatArray = npt.NDArray[np.float64]
 

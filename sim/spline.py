@@ -122,11 +122,11 @@ class SplineTrajectory:
         """(N,3) body position in the world (m) at times t_ns (int64 ns)."""
         return self._position_derivative(t_ns, 0)
 
-    def velocity_mps(self, t_ns: npt.ArrayLike) -> FloatArray:
+    def velocity_m_s(self, t_ns: npt.ArrayLike) -> FloatArray:
         """(N,3) body velocity in the world (m/s)."""
         return self._position_derivative(t_ns, 1)
 
-    def acceleration_mps2(self, t_ns: npt.ArrayLike) -> FloatArray:
+    def acceleration_m_s2(self, t_ns: npt.ArrayLike) -> FloatArray:
         """(N,3) body acceleration in the world (m/s^2), gravity not included."""
         return self._position_derivative(t_ns, 2)
 
@@ -150,7 +150,7 @@ class SplineTrajectory:
         """(N,3,3) `world_from_body` rotations."""
         return self.rotation_and_rate(t_ns)[0]
 
-    def angular_velocity_body_radps(self, t_ns: npt.ArrayLike) -> FloatArray:
+    def angular_velocity_body_rad_s(self, t_ns: npt.ArrayLike) -> FloatArray:
         """(N,3) angular velocity of the body in the body frame (rad/s): what a gyro measures."""
         return self.rotation_and_rate(t_ns)[1]
 

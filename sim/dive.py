@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from field.sim.spline import SplineTrajectory
 from shared.clock import ClockModel
 from shared.formats.diveprofile import DiveProfile, stamp_s_to_iso
+from sim.spline import SplineTrajectory
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -29,7 +29,7 @@ class DiveComputerOptions:
     sample_interval_s: logging interval (Shearwater: 10 s); depth_step_m: resolution of the
     logged depth; depth_noise_m: standard deviation of the sensor noise (m);
     descent_s / bottom_before_s: time from the surface to the filming depth / hovering
-    there before filming starts; bottom_after_s, ascent_rate_mps, safety_stop_*: after.
+    there before filming starts; bottom_after_s, ascent_rate_m_s, safety_stop_*: after.
     """
 
     sample_interval_s: float = 10.0
@@ -38,7 +38,7 @@ class DiveComputerOptions:
     descent_s: float = 150.0
     bottom_before_s: float = 120.0
     bottom_after_s: float = 90.0
-    ascent_rate_mps: float = 0.15
+    ascent_rate_m_s: float = 0.15
     safety_stop_depth_m: float = 5.0
     safety_stop_s: float = 180.0
     model: str = "Shearwater Perdix 2"
@@ -76,9 +76,9 @@ def true_depth_m(
     after = t > film_end_ns
     stop_m = options.safety_stop_depth_m
     leave_s = options.bottom_after_s
-    to_stop_s = max(last - stop_m, 0.0) / options.ascent_rate_mps
+    to_stop_s = max(last - stop_m, 0.0) / options.ascent_rate_m_s
     stop_end_s = leave_s + to_stop_s + options.safety_stop_s
-    surface_s = stop_end_s + stop_m / options.ascent_rate_mps
+    surface_s = stop_end_s + stop_m / options.ascent_rate_m_s
     depth_after = np.select(
         [
             after_s <= leave_s,
@@ -88,9 +88,9 @@ def true_depth_m(
         ],
         [
             last + 0.4 * np.sin(after_s / 23.0),
-            last - (after_s - leave_s) * options.ascent_rate_mps,
+            last - (after_s - leave_s) * options.ascent_rate_m_s,
             np.full_like(after_s, stop_m),
-            stop_m - (after_s - stop_end_s) * options.ascent_rate_mps,
+            stop_m - (after_s - stop_end_s) * options.ascent_rate_m_s,
         ],
         0.0,
     )
@@ -104,12 +104,12 @@ def dive_timeline_ns(
 ) -> tuple[int, int]:
     """(dive start, dive end) in true time (int64 ns): surface to surface."""
     last = float(-trajectory.position_m([film_end_ns])[0, 2])
-    to_stop_s = max(last - options.safety_stop_depth_m, 0.0) / options.ascent_rate_mps
+    to_stop_s = max(last - options.safety_stop_depth_m, 0.0) / options.ascent_rate_m_s
     after_s = (
         options.bottom_after_s
         + to_stop_s
         + options.safety_stop_s
-        + options.safety_stop_depth_m / options.ascent_rate_mps
+        + options.safety_stop_depth_m / options.ascent_rate_m_s
     )
     start = film_start_ns - round((options.descent_s + options.bottom_before_s) * 1e9)
     return start, film_end_ns + round(after_s * 1e9)

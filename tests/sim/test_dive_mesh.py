@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from field.sim.dive import DiveComputerOptions, simulate_dive_profile, true_depth_m
-from field.sim.mesh import ply_bytes, scene_mesh, write_ply
-from field.sim.motion import builtin_route, diver_trajectory
-from field.sim.scene import WreckScene
-from field.sim.survey import default_cam_from_imu
 from shared.clock import ClockModel
 from shared.errors import OutputExistsError
+from sim.dive import DiveComputerOptions, simulate_dive_profile, true_depth_m
+from sim.mesh import ply_bytes, scene_mesh, write_ply
+from sim.motion import builtin_route, diver_trajectory
+from sim.scene import WreckScene
+from sim.survey import default_cam_from_imu
 
 START_NS = 1_718_443_800_000_000_000
 

@@ -3,7 +3,7 @@
 `SurveySimulator` holds the scene, the camera, and each session's diver trajectory, IMU and
 clocks, all drawn from one seed; it renders any frame on demand (`render_frame`, the call a
 live source uses) and gives the truth. `run` writes a whole survey folder (see
-`field.sim` for the layout). Time bases: every session's IMU clock *is* true time
+`sim` for the layout). Time bases: every session's IMU clock *is* true time
 (int64 ns since the epoch); camera stamps follow Kalibr, t_imu = t_cam + timeshift; the
 GoPro file counts media time from its first frame; the dive computer has its own clock.
 """
@@ -22,25 +22,27 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from field.sim.dive import DiveComputerOptions, simulate_dive_profile
-from field.sim.imu import GRAVITY_W_MPS2, ImuSamples, simulate_imu
-from field.sim.mesh import scene_mesh, write_ply
-from field.sim.motion import DiverRoute, builtin_route, diver_trajectory
-from field.sim.render import RenderedFrame, Renderer, WaterModel
-from field.sim.scene import WreckScene, build_wreck_scene
-from field.sim.spline import SplineTrajectory
 from shared.calibration.cameras import PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, ImuNoise
 from shared.clock import ClockModel
 from shared.errors import OutputExistsError
 from shared.forkpool import fork_pool
 from shared.formats.diveprofile import DiveProfile
+from sim.dive import DiveComputerOptions, simulate_dive_profile
+from sim.imu import GRAVITY_W_M_S2, SimulatedImu, simulate_imu
+from sim.mesh import scene_mesh, write_ply
+from sim.motion import DiverRoute, builtin_route, diver_trajectory
+from sim.render import RenderedFrame, Renderer, WaterModel
+from sim.scene import WreckScene, build_wreck_scene
+from sim.spline import SplineTrajectory
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 TRUTH_FORMAT = "wreckmap-sim-truth"
-TRUTH_VERSION = 1
+# Version 2: the unit suffixes of the tree (gravity_w_m_s2, gyro_bias0_rad_s, accel_bias0_m_s2;
+# version 1 spelled them _mps2 and _radps).
+TRUTH_VERSION = 2
 # The ORIN a HERO9 writes for ACCL/GYRO (value order of the IMU chip axes).
 GOPRO_IMU_AXIS_ORDER = "ZXY"
 
@@ -92,13 +94,13 @@ def default_cam_from_imu() -> FloatArray:
 class SurveyOptions:
     """What to simulate.
 
-    sessions: number of dives (routes from `field.sim.motion.builtin_route`);
+    sessions: number of dives (routes from `sim.motion.builtin_route`);
     duration_s: filmed seconds per session; seed: everything random derives from it;
     width, height (px), fps (Hz): the camera; video: also write the GoPro-like MP4;
     imu_rate_hz: IMU sample rate; timeshift_cam_imu_s: Kalibr's t_imu = t_cam + shift;
     texel_m, seafloor_texel_m: texture resolution (m per texel); workers: render processes;
     start_utc: true start of session 0 (ISO 8601, UTC); session_gap_s: between session
-    starts (s); speed_mps: mean swimming speed; save_depth: also write each frame's depth
+    starts (s); speed_m_s: mean swimming speed; save_depth: also write each frame's depth
     map (camera z) as a 16-bit PNG in millimetres; cam_from_imu: the extrinsic `T_C_B`
     (4x4, default `default_cam_from_imu()`); water: the image model; imu_noise: Kalibr
     noise (default `default_imu_noise`); dive_computer: the dive computer's settings.
@@ -118,7 +120,7 @@ class SurveyOptions:
     workers: int = 2
     start_utc: str = "2024-06-15T09:30:00"
     session_gap_s: float = 10800.0
-    speed_mps: float = 0.35
+    speed_m_s: float = 0.35
     save_depth: bool = False
     cam_from_imu: FloatArray | None = None
     water: WaterModel = field(default_factory=WaterModel)
@@ -170,8 +172,8 @@ class SessionTruth:
     end_ns: int
     frame_stamps_cam_ns: IntArray
     imu_stamps_ns: IntArray
-    gyro_bias0_radps: FloatArray
-    accel_bias0_mps2: FloatArray
+    gyro_bias0_rad_s: FloatArray
+    accel_bias0_m_s2: FloatArray
     dive_clock: ClockModel
     gopro_clock: ClockModel
 
@@ -222,7 +224,7 @@ class SurveySimulator:
             duration_s=opt.duration_s,
             cam_from_imu=self.calibration.cam_from_imu,
             rng=self._rng(_RNG_MOTION, k),
-            speed_mps=opt.speed_mps,
+            speed_m_s=opt.speed_m_s,
         )
         n_frames = max(int(np.floor(opt.duration_s * opt.fps + 1e-9)), 1)
         fps = Fraction(opt.fps).limit_denominator(1001)
@@ -257,8 +259,8 @@ class SurveySimulator:
             end_ns=start_ns + duration_ns,
             frame_stamps_cam_ns=start_ns + frame_offsets,
             imu_stamps_ns=start_ns + imu_offsets,
-            gyro_bias0_radps=bias_rng.normal(0.0, 0.003, size=3),
-            accel_bias0_mps2=bias_rng.normal(0.0, 0.04, size=3),
+            gyro_bias0_rad_s=bias_rng.normal(0.0, 0.003, size=3),
+            accel_bias0_m_s2=bias_rng.normal(0.0, 0.04, size=3),
             dive_clock=dive_clock,
             gopro_clock=gopro_clock,
         )
@@ -311,7 +313,7 @@ class SurveySimulator:
         rng = self._rng(_RNG_FRAME, session, key) if noise else None
         return self.renderer.render(pose, rng=rng)
 
-    def imu(self, session: int) -> ImuSamples:
+    def imu(self, session: int) -> SimulatedImu:
         """The session's IMU samples (noise and bias walks included)."""
         truth = self.sessions[session]
         return simulate_imu(
@@ -319,8 +321,8 @@ class SurveySimulator:
             truth.imu_stamps_ns,
             noise=self.options.imu,
             rng=self._rng(_RNG_IMU, session),
-            gyro_bias0_radps=truth.gyro_bias0_radps,
-            accel_bias0_mps2=truth.accel_bias0_mps2,
+            gyro_bias0_rad_s=truth.gyro_bias0_rad_s,
+            accel_bias0_m_s2=truth.accel_bias0_m_s2,
         )
 
     def dive_profile(self, session: int) -> DiveProfile:
@@ -336,7 +338,7 @@ class SurveySimulator:
         )
 
     def truth_document(self) -> dict[str, Any]:
-        """The content of truth.json (see `field.sim`)."""
+        """The content of truth.json (see `sim`)."""
         opt = self.options
         cam = self.camera
         noise = opt.imu
@@ -357,8 +359,8 @@ class SurveySimulator:
                     "world_from_first_cam": _matrix(
                         self.world_from_cam(truth.index, [first_cam])[0]
                     ),
-                    "gyro_bias0_radps": truth.gyro_bias0_radps.tolist(),
-                    "accel_bias0_mps2": truth.accel_bias0_mps2.tolist(),
+                    "gyro_bias0_rad_s": truth.gyro_bias0_rad_s.tolist(),
+                    "accel_bias0_m_s2": truth.accel_bias0_m_s2.tolist(),
                     "clocks": {
                         "imu": "true time (int64 ns since the epoch, UTC)",
                         "cam0": {
@@ -398,7 +400,7 @@ class SurveySimulator:
             "seed": opt.seed,
             "world": {
                 "frame": "W: z up, z = 0 at the sea surface, metres",
-                "gravity_w_mps2": GRAVITY_W_MPS2.tolist(),
+                "gravity_w_m_s2": GRAVITY_W_M_S2.tolist(),
                 "depth_relation": "depth_m = -z_W of the body (IMU) origin",
                 "seafloor_z_m": self.scene_seafloor_z_m,
                 "mesh": "truth_mesh.ply",
@@ -440,13 +442,13 @@ class SurveySimulator:
 
     @property
     def scene_targets(self) -> list[Any]:
-        from field.sim.scene import wreck_targets
+        from sim.scene import wreck_targets
 
         return wreck_targets() if self._scene is None else self._scene.targets
 
     @property
     def scene_seafloor_z_m(self) -> float:
-        from field.sim.scene import SEAFLOOR_Z_M
+        from sim.scene import SEAFLOOR_Z_M
 
         return SEAFLOOR_Z_M if self._scene is None else self._scene.seafloor_z_m
 
@@ -513,7 +515,7 @@ def _rendered_frames(sim: SurveySimulator, session: int, workers: int, bar: Any)
             yield (task[2], *images)
 
 
-def _gopro_payloads(sim: SurveySimulator, session: int, imu: ImuSamples) -> list[bytes]:
+def _gopro_payloads(sim: SurveySimulator, session: int, imu: SimulatedImu) -> list[bytes]:
     """One GPMF payload per second of media time (IMU samples on the camera clock)."""
     from field.gopro.cameras import body_from_file_axes
     from field.gopro.writer import encode_gpmf_imu_payload
@@ -540,8 +542,8 @@ def _gopro_payloads(sim: SurveySimulator, session: int, imu: ImuSamples) -> list
         first_us = int(media_ns[pick[0]] // 1000) if len(pick) else int(lo // 1000)
         payloads.append(
             encode_gpmf_imu_payload(
-                accl_mps2=imu.accel_mps2[pick] @ body_from_file,
-                gyro_rads=imu.gyro_radps[pick] @ body_from_file,
+                accl_mps2=imu.accel_m_s2[pick] @ body_from_file,
+                gyro_rads=imu.gyro_rad_s[pick] @ body_from_file,
                 accl_first_us=first_us,
                 gyro_first_us=first_us,
                 accl_total_before=total,
@@ -590,13 +592,13 @@ def write_session(sim: SurveySimulator, session: int, folder: Path, bar: Any) ->
         else:
             for _ in colour_frames():
                 pass
-        euroc.add_imu(imu.stamps_ns, imu.gyro_radps, imu.accel_mps2)
+        euroc.add_imu(imu.stamps_ns, imu.gyro_rad_s, imu.accel_m_s2)
         poses = truth.trajectory.world_from_body(imu.stamps_ns)
         euroc.set_groundtruth(
             Trajectory(stamps_ns=imu.stamps_ns, poses=poses),
-            truth.trajectory.velocity_mps(imu.stamps_ns),
-            imu.gyro_bias_radps,
-            imu.accel_bias_mps2,
+            truth.trajectory.velocity_m_s(imu.stamps_ns),
+            imu.gyro_bias_rad_s,
+            imu.accel_bias_m_s2,
         )
     write_tum(folder / "world_from_body.tum", Trajectory(stamps_ns=imu.stamps_ns, poses=poses))
     write_dive(folder / "dive", sim.dive_profile(session))
@@ -620,7 +622,7 @@ def write_session(sim: SurveySimulator, session: int, folder: Path, bar: Any) ->
 
 
 def run(options: SurveyOptions, out_dir: Path | str, *, overwrite: bool = False) -> Path:
-    """Simulate a survey into `out_dir` (layout in `field.sim`); returns `out_dir`.
+    """Simulate a survey into `out_dir` (layout in `sim`); returns `out_dir`.
 
     Refuses an existing non-empty `out_dir` unless `overwrite`; everything is written
     under a temporary name and renamed into place when complete.

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from field.sim.scene import TargetPlacement, WreckScene
 from shared.calibration.aprilgrid import render_target_texture, texture_margin_m
 from shared.calibration.cameras import CameraModel
+from sim.scene import TargetPlacement, WreckScene
 
 F32 = npt.NDArray[np.float32]
 FloatArray = npt.NDArray[np.float64]
