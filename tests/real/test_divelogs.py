@@ -270,6 +270,54 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
             ("2012-10-01T07:24:00", 198, 69.9),
         ],
     ),
+    # Subsurface's renumbering test: test47.xml's dive from a second file (another
+    # site), then with a second dive; the divecomputer's own starts, as in test47.xml.
+    "test47b.xml": (IMPORTS, [("2015-10-05T08:45:25", 6, 13.716)]),
+    "test47c.xml": (
+        IMPORTS,
+        [("2015-10-05T08:45:25", 6, 13.716), ("2015-10-05T08:48:05", 6, 13.716)],
+    ),
+    # Its tank-sensor tests: four CCR dives (tank sensor mappings, pressure2 on one
+    # sample); the same dives from a second computer; and Subsurface's merge of the two
+    # files, each dive holding both computers (eight profiles, in dive order).
+    "test-tank-sensor-mapping.xml": (
+        IMPORTS,
+        [
+            ("2025-03-11T20:46:51", 12, 15.0),
+            ("2025-03-11T20:47:03", 14, 15.0),
+            ("2025-03-11T20:47:27", 15, 15.0),
+            ("2025-03-11T20:47:33", 15, 15.0),
+        ],
+    ),
+    "test-tank-sensor-mapping-merge.xml": (
+        IMPORTS,
+        [
+            ("2025-03-11T20:46:51", 12, 15.0),
+            ("2025-03-11T20:47:03", 14, 15.0),
+            ("2025-03-11T20:47:27", 15, 15.0),
+            ("2025-03-11T20:47:33", 15, 15.0),
+        ],
+    ),
+    "merged-tank-sensors.xml": (
+        IMPORTS,
+        [
+            (start, samples, 15.0)
+            for start, samples in (
+                ("2025-03-11T20:46:51", 12),
+                ("2025-03-11T20:47:03", 14),
+                ("2025-03-11T20:47:27", 15),
+                ("2025-03-11T20:47:33", 15),
+            )
+            for _computer in (1, 2)
+        ],
+    ),
+    # Subsurface's readings of Suunto app JSON logs (the .json beside them, not ours):
+    # every sample written twice at the same time (once with its extra values, once
+    # depth only), and both copies read.
+    "suunto_ocean_gf.xml": (IMPORTS, [("2025-06-01T09:00:00", 10, 20.0)]),
+    "suunto_ocean_gf_fit_override.xml": (IMPORTS, [("2025-06-01T09:00:00", 10, 20.0)]),
+    "suunto_eon_core_multigas.xml": (IMPORTS, [("2025-06-01T09:00:00", 22, 20.0)]),
+    "suunto_nautic_multigas.xml": (IMPORTS, [("2025-12-27T15:56:17", 79, 21.14)]),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
@@ -360,6 +408,24 @@ def test_corpus_same_dives_as_subsurface_read_them(names: tuple[str, ...], refer
             assert (a.model, a.serial) == (b.model, b.serial)
         np.testing.assert_array_equal(a.stamps_s, b.stamps_s)
         np.testing.assert_allclose(a.depth_m, b.depth_m, atol=1e-9)
+
+
+def test_merged_tank_sensors_is_both_files_dives() -> None:
+    """Subsurface merges test-tank-sensor-mapping.xml and its twin from a second computer
+    into merged-tank-sensors.xml: the merged file's profiles are the two files' profiles,
+    one per (start, computer), with the same samples."""
+
+    def key(dive: DiveProfile) -> tuple[str, str]:
+        return (dive.start_iso, dive.model)
+
+    names = ("test-tank-sensor-mapping.xml", "test-tank-sensor-mapping-merge.xml")
+    ours = sorted((d for name in names for d in read_logbook(CORPUS / name)), key=key)
+    theirs = sorted(read_logbook(CORPUS / "merged-tank-sensors.xml"), key=key)
+    assert [key(d) for d in ours] == [key(d) for d in theirs]
+    assert len({key(d) for d in theirs}) == len(theirs) == 8
+    for a, b in zip(ours, theirs, strict=True):
+        np.testing.assert_array_equal(a.stamps_s, b.stamps_s)
+        np.testing.assert_array_equal(a.depth_m, b.depth_m)
 
 
 @pytest.mark.parametrize(("first", "second"), SAME_PROFILE)
