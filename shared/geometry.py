@@ -125,6 +125,30 @@ def invert_pose(T: npt.ArrayLike) -> FloatArray:
     return make_pose(R_t, -np.einsum("...ij,...j->...i", R_t, t))
 
 
+def look_at(
+    eye: npt.ArrayLike, target: npt.ArrayLike, up: npt.ArrayLike = (0.0, 0.0, 1.0)
+) -> FloatArray:
+    """`T_W_C` of an OpenCV camera (x right, y down, z forward) at `eye` looking at `target`.
+
+    eye, target: (3,) or (..., 3) points in W (metres; batches broadcast); up: the
+    direction the top of the image faces (camera x = z cross up, so camera y points
+    away from `up`), W's z by default. Where `up` is along the line of sight, x = z
+    cross (1, 0, 0). Returns (4, 4) or (..., 4, 4).
+    """
+    eye_w = _as_float(eye)
+    z = _as_float(target) - eye_w
+    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
+    x = np.cross(z, _as_float(up))
+    length = np.linalg.norm(x, axis=-1, keepdims=True)
+    along = length < 1e-9
+    if np.any(along):
+        x = np.where(along, np.cross(z, np.array([1.0, 0.0, 0.0])), x)
+        length = np.linalg.norm(x, axis=-1, keepdims=True)
+    x = x / length
+    y = np.cross(z, x)
+    return make_pose(np.stack((x, y, z), axis=-1), np.broadcast_to(eye_w, z.shape))
+
+
 def transform_points(T: npt.ArrayLike, points: npt.ArrayLike) -> FloatArray:
     """Apply one pose `T_A_B` (4, 4) to points `p_B` (N, 3); returns `p_A` (N, 3)."""
     T = _as_float(T)

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from shared.geometry import (
     interpolate_poses,
     invert_pose,
+    look_at,
     make_pose,
     matrix_from_quat_wxyz,
     matrix_from_quat_xyzw,
@@ -378,3 +379,37 @@ def test_project_to_so3() -> None:
     assert is_rotation(P)
     assert rotation_angle_rad(P.T @ R) < 1e-2
     assert is_rotation(project_to_so3(-np.eye(3)))
+
+
+def test_look_at_puts_the_target_on_the_optical_axis_with_the_image_top_up() -> None:
+    eye = np.array([1.0, -2.0, -10.0])
+    target = np.array([4.0, 2.0, -12.0])
+    world_from_cam = look_at(eye, target)
+    R = world_from_cam[:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_array_equal(world_from_cam[:3, 3], eye)
+    in_cam = invert_pose(world_from_cam) @ np.r_[target, 1.0]
+    np.testing.assert_allclose(in_cam[:2], 0.0, atol=1e-12)
+    assert in_cam[2] == pytest.approx(np.linalg.norm(target - eye))
+    # OpenCV axes: x horizontal (no roll about W's z), y (image down) points down in W.
+    assert abs(R[2, 0]) < 1e-12
+    assert R[2, 1] < 0.0
+    # Another up: the image top faces it.
+    sideways = look_at(eye, target, up=(0.0, 1.0, 0.0))[:3, :3]
+    assert abs(sideways[:, 0] @ [0.0, 1.0, 0.0]) < 1e-12
+    assert sideways[1, 1] < 0.0
+
+
+def test_look_at_batches_and_looking_along_up() -> None:
+    rng = np.random.default_rng(4)
+    eyes, targets = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    batch = look_at(eyes, targets)
+    assert batch.shape == (6, 4, 4)
+    for i in range(6):
+        np.testing.assert_array_equal(batch[i], look_at(eyes[i], targets[i]))
+    # Straight down along -up: x falls back to z cross (1, 0, 0), still a rotation.
+    down = look_at([0.0, 0.0, 0.0], [0.0, 0.0, -3.0])[:3, :3]
+    np.testing.assert_allclose(down[:, 2], [0.0, 0.0, -1.0])
+    np.testing.assert_allclose(down.T @ down, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(down[:, 0], np.cross([0.0, 0.0, -1.0], [1.0, 0.0, 0.0]))
