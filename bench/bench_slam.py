@@ -12,7 +12,7 @@ back and forth, so features never run out); prints the process RSS and the
 backend time per keyframe (wall and CPU) at the start, middle and end, to show
 that the sliding-window smoother keeps both flat, then the ATE.
 
-1. Feature-level sequences (postproc.slam.synthetic: exact tracks with pixel
+1. Feature-level sequences (sim.features: exact tracks with pixel
    noise, simulated IMU): the backend alone, no images.
 2. Rendered surveys (sim, the same simulator `wreckmap-field sim survey`
    runs; rendered once into --work and reused): the whole stage, images to
@@ -62,13 +62,13 @@ from postproc.slam.estimator import EstimatorOptions, SlamEstimator
 from postproc.slam.frontend import FrontendOptions
 from postproc.slam.stage import SlamOptions
 from postproc.slam.stage import run as run_slam
-from postproc.slam.synthetic import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
 from postproc.slam.types import FloatArray
 from postproc.slam.visual_only import VisualOnlyEstimator
 from shared.errors import StageError
 from shared.formats.euroc import read_euroc
 from shared.formats.tum import read_tum
 from shared.trajectory import Trajectory, ate
+from sim.features import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
 from sim.survey import SurveyOptions
 from sim.survey import run as render_survey
 

@@ -22,5 +22,4 @@ Modules, from pixels to the result folder:
   from separate sensors, become one strictly increasing stream in `shared.imu`.)
 - `stage`: `SlamOptions` and `run(options, input_path, out_dir)` writing the
   SLAM result folder of docs/conventions.md.
-- `synthetic`: feature-level and rendered-wall simulation for tests and benchmarks.
 """

@@ -7,19 +7,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from postproc.slam.synthetic import (
+from shared.calibration.kalibr import CameraCalibration, ImuNoise
+from shared.formats.euroc import EurocWriter
+from shared.geometry import invert_pose
+from shared.trajectory import Trajectory
+from sim.features import (
     DiverMotion,
     SyntheticOptions,
     WallRenderer,
     default_camera,
     default_imu_from_cam,
     make_wall_texture,
-    simulate_imu,
+    sequence_imu,
 )
-from shared.calibration.kalibr import CameraCalibration, ImuNoise
-from shared.formats.euroc import EurocWriter
-from shared.geometry import invert_pose
-from shared.trajectory import Trajectory
 
 
 def write_wall_euroc(
@@ -38,7 +38,7 @@ def write_wall_euroc(
     imu_stamps = motion.start_ns + np.arange(
         -40 * imu_dt_ns, round(duration_s * 1e9) + 40 * imu_dt_ns, imu_dt_ns, dtype=np.int64
     )
-    imu, _, _ = simulate_imu(motion, imu_stamps, options, rng)
+    imu = sequence_imu(motion, imu_stamps, options, rng)
     noise = ImuNoise(
         accelerometer_noise_density=options.accelerometer_noise_density,
         accelerometer_random_walk=options.accelerometer_random_walk,

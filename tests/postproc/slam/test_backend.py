@@ -15,11 +15,11 @@ from postproc.slam.backend import (
 )
 from postproc.slam.estimator import EstimatorOptions, SlamEstimator
 from postproc.slam.keyframes import KeyframeOptions
-from postproc.slam.synthetic import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
 from postproc.slam.types import FrameTracks, ImuSamples
 from shared.errors import StageError
 from shared.geometry import invert_pose, make_pose, so3_exp
 from shared.trajectory import Trajectory, ate
+from sim.features import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
 
 
 def _run(seq, options: EstimatorOptions | None = None):  # type: ignore[no-untyped-def]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from postproc.slam.frontend import FrontendOptions, KltFrontend, scale_for_width, track_ids_in_both
-from postproc.slam.synthetic import (
+from sim.features import (
     DiverMotion,
     WallRenderer,
     default_camera,
@@ -108,7 +108,7 @@ def test_colour_input_and_full_width() -> None:
 
 def test_undistort_table_matches_the_exact_model() -> None:
     from postproc.slam.frontend import _UndistortTable
-    from postproc.slam.synthetic import default_camera
+    from sim.features import default_camera
 
     camera = default_camera()  # 960 px, barrel distortion k1 = -0.05
     table = _UndistortTable(camera)

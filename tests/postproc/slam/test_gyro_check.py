@@ -21,9 +21,9 @@ from postproc.slam.gyro_check import (
     check_gyro_against_images,
     visual_rotation,
 )
-from postproc.slam.synthetic import DiverMotion, Sinusoids
 from postproc.slam.types import ImuSamples
 from shared.geometry import so3_exp, so3_log
+from sim.features import DiverMotion, Sinusoids
 
 START_NS = DiverMotion().start_ns
 FOCAL_PX = 400.0

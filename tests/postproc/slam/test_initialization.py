@@ -15,10 +15,10 @@ from postproc.slam.initialization import (
     session_from_body_rotation,
     translation_direction,
 )
-from postproc.slam.synthetic import DiverMotion, SyntheticOptions, simulate_imu, simulate_sequence
 from postproc.slam.types import ImuSamples
 from shared.errors import StageError
 from shared.geometry import so3_exp
+from sim.features import DiverMotion, SyntheticOptions, sequence_imu, simulate_sequence
 
 
 def test_gravity_becomes_z_and_body_x_keeps_zero_yaw() -> None:
@@ -48,7 +48,7 @@ def test_mean_specific_force_removes_rotation_during_the_window() -> None:
         accel_bias_m_s2=0.0,
     )
     stamps = motion.start_ns + np.arange(0, 2_000_000_000, 5_000_000, dtype=np.int64)
-    imu, _, _ = simulate_imu(motion, stamps, options, np.random.default_rng(0))
+    imu = sequence_imu(motion, stamps, options, np.random.default_rng(0))
     mean = mean_specific_force(imu, int(stamps[0]), 1.0)
     R_W_B0 = motion.world_from_body(stamps[:1])[0, :3, :3]
     # Truth: mean of (a - g) over the window, in B0; the diver's own acceleration is small.

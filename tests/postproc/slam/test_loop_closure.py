@@ -14,7 +14,10 @@ from postproc.slam.loop_closure import (
     match_descriptors,
     orb_descriptors,
 )
-from postproc.slam.synthetic import (
+from shared.errors import StageError
+from shared.geometry import invert_pose, make_pose, so3_exp
+from shared.trajectory import Trajectory, ate
+from sim.features import (
     DiverMotion,
     Sinusoids,
     SyntheticOptions,
@@ -24,9 +27,6 @@ from postproc.slam.synthetic import (
     make_wall_texture,
     simulate_sequence,
 )
-from shared.errors import StageError
-from shared.geometry import invert_pose, make_pose, so3_exp
-from shared.trajectory import Trajectory, ate
 
 
 def _noisy_descriptors(

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from postproc.slam.estimator import EstimatorOptions, SlamEstimator
-from postproc.slam.synthetic import SyntheticOptions, simulate_sequence
 from postproc.slam.types import ImuSamples
 from shared.errors import StageError
 from shared.trajectory import Trajectory, ate
+from sim.features import SyntheticOptions, simulate_sequence
 
 
 def _estimator(seq, imu: ImuSamples | None = None) -> SlamEstimator:  # type: ignore[no-untyped-def]

@@ -7,10 +7,10 @@ import pytest
 
 from postproc.slam.estimator import SlamResult
 from postproc.slam.stabilised import gravity_and_scale, imu_scale, mean_force_in_frame
-from postproc.slam.synthetic import DiverMotion, Sinusoids
 from postproc.slam.types import ImuSamples
 from shared.errors import StageError
 from shared.geometry import invert_pose
+from sim.features import DiverMotion, Sinusoids
 
 GRAVITY = 9.81
 VISUAL_SCALE = 1 / 3  # the visual path is a third of the true one

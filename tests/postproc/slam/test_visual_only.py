@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 
 from postproc.slam.estimator import EstimatorOptions
-from postproc.slam.synthetic import SyntheticOptions, simulate_sequence
 from postproc.slam.visual_only import VisualOnlyEstimator
 from shared.errors import StageError
 from shared.trajectory import Trajectory, ate
+from sim.features import SyntheticOptions, simulate_sequence
 
 
 def test_shape_up_to_scale() -> None:

@@ -10,7 +10,7 @@ divers do. Body B = IMU frame (x forward, y left, z up); the camera looks
 forward (`T_B_C` below). The trajectory is a sum of sinusoids with a
 constant drift, so velocity, acceleration and the body angular rate are
 exact (no finite differences) and the simulated IMU is consistent with the
-poses to machine precision.
+poses to machine precision (`sim.imu.simulate_imu` on the same motion).
 """
 
 from __future__ import annotations
@@ -21,12 +21,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
+from postproc.slam.types import FrameTracks
 from shared.calibration.cameras import PinholeRadtan
 from shared.calibration.kalibr import ImuNoise
 from shared.geometry import invert_pose, make_pose
+from sim.imu import RandomBias, SimulatedImu, simulate_imu
 
-GRAVITY_M_S2 = 9.81
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 
 
 def _rot_x(a: FloatArray) -> FloatArray:
@@ -120,22 +122,32 @@ class DiverMotion:
         )
     )
 
-    def _t(self, stamps_ns: IntArray) -> FloatArray:
+    def _t(self, stamps_ns: npt.ArrayLike) -> FloatArray:
         return (np.asarray(stamps_ns, dtype=np.int64) - self.start_ns).astype(np.float64) * 1e-9
+
+    def rotation(self, stamps_ns: IntArray) -> FloatArray:
+        """(N, 3, 3) rotations `R_W_B` at the stamps (int64 ns)."""
+        t = self._t(stamps_ns)
+        rotation: FloatArray = _rot_z(self.yaw(t)) @ _rot_y(self.pitch(t)) @ _rot_x(self.roll(t))
+        return rotation
 
     def world_from_body(self, stamps_ns: IntArray) -> FloatArray:
         """(N, 4, 4) poses `T_W_B` at the stamps (int64 ns)."""
         t = self._t(stamps_ns)
-        R = _rot_z(self.yaw(t)) @ _rot_y(self.pitch(t)) @ _rot_x(self.roll(t))
         p = np.stack([self.x(t), self.y(t), self.z(t)], axis=-1)
-        return make_pose(R, p)
+        return make_pose(self.rotation(stamps_ns), p)
+
+    def rotation_and_rate(self, stamps_ns: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """`R_W_B` (N, 3, 3) and the body angular rate (N, 3) rad/s (`sim.imu.ImuMotion`)."""
+        stamps = np.asarray(stamps_ns, dtype=np.int64)
+        return self.rotation(stamps), self.angular_rate_body_rad_s(stamps)
 
     def velocity_m_s(self, stamps_ns: IntArray) -> FloatArray:
         """(N, 3) velocity in W (m/s)."""
         t = self._t(stamps_ns)
         return np.stack([self.x(t, 1), self.y(t, 1), self.z(t, 1)], axis=-1)
 
-    def acceleration_m_s2(self, stamps_ns: IntArray) -> FloatArray:
+    def acceleration_m_s2(self, stamps_ns: npt.ArrayLike) -> FloatArray:
         """(N, 3) acceleration in W (m/s^2), gravity not included."""
         t = self._t(stamps_ns)
         return np.stack([self.x(t, 2), self.y(t, 2), self.z(t, 2)], axis=-1)
@@ -214,13 +226,23 @@ class SyntheticOptions:
     landmark_density_per_m2: float = 12.0
     seed: int = 0
 
+    def imu_noise(self) -> ImuNoise:
+        """The Kalibr noise model of the simulated IMU."""
+        return ImuNoise(
+            accelerometer_noise_density=self.accelerometer_noise_density,
+            accelerometer_random_walk=self.accelerometer_random_walk,
+            gyroscope_noise_density=self.gyroscope_noise_density,
+            gyroscope_random_walk=self.gyroscope_random_walk,
+            update_rate_hz=self.imu_rate_hz,
+        )
+
 
 @dataclass
 class SyntheticSequence:
-    """A simulated sequence: per-frame tracks, IMU samples and the truth."""
+    """A simulated sequence: per-frame tracks, IMU samples (with their true biases), truth."""
 
     frames: list[FrameTracks]
-    imu: ImuSamples
+    imu: SimulatedImu
     camera: PinholeRadtan
     imu_from_cam: FloatArray
     world_from_body: FloatArray  # (F, 4, 4) truth at the frame stamps
@@ -228,58 +250,36 @@ class SyntheticSequence:
     landmarks_w: FloatArray
     options: SyntheticOptions
     frame_landmarks: list[IntArray]  # per frame, the landmark index of each track
-    accel_bias_m_s2: FloatArray  # (M, 3) true bias at each IMU sample
-    gyro_bias_rad_s: FloatArray  # (M, 3)
+
+    @property
+    def accel_bias_m_s2(self) -> FloatArray:
+        """(M, 3) true accelerometer bias at each IMU sample."""
+        return self.imu.accel_bias_m_s2
+
+    @property
+    def gyro_bias_rad_s(self) -> FloatArray:
+        """(M, 3) true gyro bias at each IMU sample."""
+        return self.imu.gyro_bias_rad_s
 
     def imu_noise(self) -> ImuNoise:
         """The Kalibr noise model the IMU was simulated with."""
-        o = self.options
-        return ImuNoise(
-            accelerometer_noise_density=o.accelerometer_noise_density,
-            accelerometer_random_walk=o.accelerometer_random_walk,
-            gyroscope_noise_density=o.gyroscope_noise_density,
-            gyroscope_random_walk=o.gyroscope_random_walk,
-            update_rate_hz=o.imu_rate_hz,
-        )
+        return self.options.imu_noise()
 
 
-def _random_unit(rng: np.random.Generator) -> FloatArray:
-    v = rng.normal(size=3)
-    unit: FloatArray = v / np.linalg.norm(v)
-    return unit
-
-
-def simulate_imu(
+def sequence_imu(
     motion: DiverMotion, stamps_ns: IntArray, options: SyntheticOptions, rng: np.random.Generator
-) -> tuple[ImuSamples, FloatArray, FloatArray]:
-    """IMU samples at `stamps_ns` with white noise and random-walk biases (Kalibr model).
-
-    Returns the samples and the true (M, 3) accelerometer and gyro biases.
-    """
-    poses = motion.world_from_body(stamps_ns)
-    R_W_B = poses[:, :3, :3]
-    gravity = np.array([0.0, 0.0, -GRAVITY_M_S2])
-    specific_force_w = motion.acceleration_m_s2(stamps_ns) - gravity
-    accel = np.einsum("nji,nj->ni", R_W_B, specific_force_w)
-    gyro = motion.angular_rate_body_rad_s(stamps_ns)
-    dt = 1.0 / options.imu_rate_hz
-    n = len(stamps_ns)
-    gyro_bias = options.gyro_bias_rad_s * _random_unit(rng) + np.cumsum(
-        rng.normal(size=(n, 3)) * options.gyroscope_random_walk * np.sqrt(dt), axis=0
+) -> SimulatedImu:
+    """The IMU of a feature-level sequence: `sim.imu.simulate_imu` with the options' noise,
+    initial biases of the options' norms in random directions, the walks one step in."""
+    return simulate_imu(
+        motion,
+        stamps_ns,
+        noise=options.imu_noise(),
+        rng=rng,
+        gyro_bias0_rad_s=RandomBias(options.gyro_bias_rad_s),
+        accel_bias0_m_s2=RandomBias(options.accel_bias_m_s2),
+        walk_before_first=True,
     )
-    accel_bias = options.accel_bias_m_s2 * _random_unit(rng) + np.cumsum(
-        rng.normal(size=(n, 3)) * options.accelerometer_random_walk * np.sqrt(dt), axis=0
-    )
-    # Continuous-time densities become per-sample standard deviations: sigma = density / sqrt(dt).
-    gyro = (
-        gyro + gyro_bias + rng.normal(size=(n, 3)) * options.gyroscope_noise_density / np.sqrt(dt)
-    )
-    accel = (
-        accel
-        + accel_bias
-        + rng.normal(size=(n, 3)) * options.accelerometer_noise_density / np.sqrt(dt)
-    )
-    return ImuSamples(np.asarray(stamps_ns, dtype=np.int64), gyro, accel), accel_bias, gyro_bias
 
 
 def simulate_sequence(
@@ -306,7 +306,7 @@ def simulate_sequence(
     imu_stamps = motion.start_ns + np.arange(
         -50 * imu_dt_ns, duration_ns + 50 * imu_dt_ns, imu_dt_ns, dtype=np.int64
     )
-    imu, accel_bias, gyro_bias = simulate_imu(motion, imu_stamps, options, rng)
+    imu = sequence_imu(motion, imu_stamps, options, rng)
 
     world_from_body = motion.world_from_body(frame_stamps)
     cam_from_world = invert_pose(world_from_body @ imu_from_cam)
@@ -363,8 +363,6 @@ def simulate_sequence(
         landmarks_w=landmarks,
         options=options,
         frame_landmarks=frame_landmarks,
-        accel_bias_m_s2=accel_bias,
-        gyro_bias_rad_s=gyro_bias,
     )
 
 
