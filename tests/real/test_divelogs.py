@@ -311,13 +311,20 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
             for _computer in (1, 2)
         ],
     ),
-    # Subsurface's readings of Suunto app JSON logs (the .json beside them, not ours):
-    # every sample written twice at the same time (once with its extra values, once
-    # depth only), and both copies read.
+    # Subsurface's readings of Suunto app JSON logs (the .json beside them, not ours).
+    # All but nautic_multigas write every sample twice at the same time (once with its
+    # extra values, once depth only); both copies are read, so times repeat.
     "suunto_ocean_gf.xml": (IMPORTS, [("2025-06-01T09:00:00", 10, 20.0)]),
     "suunto_ocean_gf_fit_override.xml": (IMPORTS, [("2025-06-01T09:00:00", 10, 20.0)]),
     "suunto_eon_core_multigas.xml": (IMPORTS, [("2025-06-01T09:00:00", 22, 20.0)]),
     "suunto_nautic_multigas.xml": (IMPORTS, [("2025-12-27T15:56:17", 79, 21.14)]),
+    "suunto_ocean_nitrox.xml": (IMPORTS, [("2026-05-15T10:40:49", 836, 10.59)]),
+    "suunto_eon_core_nitrox.xml": (IMPORTS, [("2024-10-06T00:33:51", 796, 22.65)]),
+    "suunto_ocean_air.xml": (IMPORTS, [("2026-01-13T06:05:31", 664, 23.12)]),
+    # The same computer and dive as nautic_multigas, whose 79 samples are its first 12:20
+    # (checked below), but an hour earlier: nautic_multigas applies its 'Time offset
+    # from UTC' of 3600 s, this reading does not.
+    "suunto_nautic_sidemount.xml": (IMPORTS, [("2025-12-27T14:56:17", 420, 21.14)]),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
@@ -426,6 +433,18 @@ def test_merged_tank_sensors_is_both_files_dives() -> None:
     for a, b in zip(ours, theirs, strict=True):
         np.testing.assert_array_equal(a.stamps_s, b.stamps_s)
         np.testing.assert_array_equal(a.depth_m, b.depth_m)
+
+
+def test_suunto_nautic_readings_share_a_profile() -> None:
+    """Subsurface's two readings of one Suunto Nautic dive: the multigas one is the first
+    12:20 of the sidemount one (whose samples come twice), one hour later on the clock."""
+    (short,) = read_logbook(CORPUS / "suunto_nautic_multigas.xml")
+    (full,) = read_logbook(CORPUS / "suunto_nautic_sidemount.xml")
+    assert (short.model, short.serial) == (full.model, full.serial)
+    np.testing.assert_array_equal(full.stamps_s[0::2], full.stamps_s[1::2])
+    once = slice(0, 2 * short.stamps_s.size, 2)
+    np.testing.assert_array_equal(short.depth_m, full.depth_m[once])
+    np.testing.assert_array_equal(short.stamps_s - 3600.0, full.stamps_s[once])
 
 
 @pytest.mark.parametrize(("first", "second"), SAME_PROFILE)
