@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +51,7 @@ from shared.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+LOG = logging.getLogger(__name__)
 
 CAMERA_HEADER = "#timestamp [ns],filename"
 IMU_HEADER = (
@@ -359,9 +361,9 @@ class EurocDataset:
     groundtruth_accel_bias: FloatArray | None = None
 
 
-def _read_lines(path: Path) -> list[str]:
+def _read_lines(path: Path, *, errors: str = "strict") -> list[str]:
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8", errors=errors)
     except FileNotFoundError:
         raise InputError(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError) as error:
@@ -574,21 +576,73 @@ def _read_imu_yaml(path: Path) -> tuple[FloatArray, ImuNoise | None]:
     return body_from_imu, noise
 
 
-def read_euroc(folder: Path | str) -> EurocDataset:
+def _read_imu_rows_as_recorded(path: Path) -> tuple[IntArray, FloatArray]:
+    """imu0 rows in file order as they are: stamps may repeat or go back (left to
+    `shared.imu.clean_imu_rows`); a row that is not a stamp and 6 finite numbers is
+    skipped with one warning naming its lines."""
+    imu_stamps: list[int] = []
+    rows: list[list[float]] = []
+    skipped: list[int] = []
+    for number, line in enumerate(_read_lines(path, errors="replace"), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = [f.strip() for f in text.split(",")]
+        try:
+            stamp = int(fields[0])
+            values = [float(f) for f in fields[1:7]]
+        except ValueError:
+            skipped.append(number)
+            continue
+        if len(values) != 6 or not all(math.isfinite(v) for v in values):
+            skipped.append(number)
+            continue
+        if not _INT64_MIN <= stamp <= _INT64_MAX:
+            skipped.append(number)
+            continue
+        imu_stamps.append(stamp)
+        rows.append(values)
+    if skipped:
+        LOG.warning(
+            "%s: skipped %d rows that are not a stamp and 6 numbers (lines %s)",
+            path,
+            len(skipped),
+            ", ".join(str(n) for n in skipped[:5]) + (", ..." if len(skipped) > 5 else ""),
+        )
+    return np.array(imu_stamps, dtype=np.int64), np.array(rows, dtype=np.float64).reshape(-1, 6)
+
+
+def read_euroc(folder: Path | str, *, as_recorded: bool = False) -> EurocDataset:
     """Read an EuRoC folder: the one holding `mav0/`, or `mav0` itself.
 
     cam0/data.csv and imu0/data.csv are required; sensor.yaml files and the
     ground truth are optional (None when absent). Raises InputError naming the
     file (and line) for anything missing or malformed.
+
+    as_recorded: read what a real recorder writes. Either data.csv may be absent
+    (empty stamps and arrays), and imu0 rows are taken in file order as they are:
+    stamps that repeat or go back are kept for `shared.imu.clean_imu_rows`, and a
+    row that is not a stamp and 6 numbers is skipped with a warning.
     """
     folder = Path(folder)
     mav = folder / "mav0" if (folder / "mav0").is_dir() else folder
     if not (mav / "cam0").is_dir() and not (mav / "imu0").is_dir():
         raise InputError(f"{folder}: not an EuRoC folder (expected mav0/cam0 and mav0/imu0)")
-    image_stamps, image_paths = _read_camera_csv(mav / "cam0" / "data.csv")
-    imu_stamps, imu_values = _read_numeric_csv(
-        mav / "imu0" / "data.csv", 6, "timestamp, gyro xyz rad/s, accel xyz m/s^2"
-    )
+    camera_csv = mav / "cam0" / "data.csv"
+    imu_csv = mav / "imu0" / "data.csv"
+    image_paths: list[Path] = []
+    if as_recorded and not camera_csv.is_file():
+        image_stamps = np.zeros(0, dtype=np.int64)
+    else:
+        image_stamps, image_paths = _read_camera_csv(camera_csv)
+    if as_recorded and not imu_csv.is_file():
+        imu_stamps, imu_values = np.zeros(0, dtype=np.int64), np.zeros((0, 6))
+    elif as_recorded:
+        imu_stamps, imu_values = _read_imu_rows_as_recorded(imu_csv)
+    else:
+        imu_stamps, imu_values = _read_numeric_csv(
+            imu_csv, 6, "timestamp, gyro xyz rad/s, accel xyz m/s^2"
+        )
     body_from_imu, imu_noise = np.eye(4), None
     if (mav / "imu0" / "sensor.yaml").is_file():
         body_from_imu, imu_noise = _read_imu_yaml(mav / "imu0" / "sensor.yaml")

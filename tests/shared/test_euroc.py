@@ -360,3 +360,22 @@ def test_failed_image_write_and_failed_close_leave_nothing(
     with pytest.raises(RuntimeError, match="disk full"):
         writer.close()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_as_recorded_keeps_odd_imu_rows_and_allows_a_missing_sensor(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    imu0 = tmp_path / "set" / "mav0" / "imu0"
+    imu0.mkdir(parents=True)
+    rows = ["10,1,0,0,0,0,9.8", "20,2,0,0,0,0,9.8", "20,2,0,0,0,0,9.8", "15,3,0,0,0,0,9.8"]
+    rows += ["30,four,0,0,0,0,9.8", "40,nan,0,0,0,0,9.8", "50,5,0,0"]
+    (imu0 / "data.csv").write_text("#timestamp [ns],w,w,w,a,a,a\n" + "\n".join(rows) + "\n")
+    with pytest.raises(InputError, match=r"cam0/data\.csv: no such file"):
+        read_euroc(tmp_path / "set")
+    with caplog.at_level("WARNING"):
+        data = read_euroc(tmp_path / "set", as_recorded=True)
+    # Repeated and backward stamps stay, in file order; words, NaN, short rows do not.
+    np.testing.assert_array_equal(data.imu_stamps_ns, [10, 20, 20, 15])
+    np.testing.assert_array_equal(data.gyro_rad_s[:, 0], [1, 2, 2, 3])
+    assert "skipped 3 rows that are not a stamp and 6 numbers (lines 6, 7, 8)" in caplog.text
+    assert len(data.image_stamps_ns) == 0 and data.image_paths == []

@@ -207,7 +207,8 @@ def test_run_imu_input_errors(tmp_path, sweep, target_yaml):
     with pytest.raises(StageError, match="features disabled"):
         run_imu(ImuCalibrationOptions(use_features=False), tmp_path, camchain, None, tmp_path)
     session = write_imu_session(tmp_path / "imu_only", sweep.imu_stamps_ns, sweep.gyro_rad_s)
-    with pytest.raises(InputError, match=r"no camera topic '/cam0/video' \(topics: /imu0\)"):
+    wanted = r"no camera topic '/cam0/image' or '/cam0/video' \(topics: /imu0\)"
+    with pytest.raises(InputError, match=wanted):
         run_imu(ImuCalibrationOptions(), session, camchain, target_yaml, tmp_path / "o")
     small = write_camchain(
         tmp_path / "small.yaml",
@@ -282,7 +283,7 @@ def test_source_errors(tmp_path):
         source_kind(note)
     empty = tmp_path / "empty"
     empty.mkdir()
-    with pytest.raises(InputError, match="no recording found"):
+    with pytest.raises(InputError, match="empty: not a recording"):
         source_kind(empty)
     images = tmp_path / "images"
     images.mkdir()

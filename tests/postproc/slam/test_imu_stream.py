@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from postproc.slam.frontend import FrontendOptions
-from postproc.slam.inputs import SessionInput, open_input
+from postproc.slam.inputs import open_input
 from postproc.slam.stage import SlamOptions, run
 from shared.archive import ArchiveWriter, CompressedImage, Imu
 from shared.calibration.kalibr import write_camchain, write_imu_yaml
@@ -58,7 +58,7 @@ def test_an_imu_that_starts_late_and_ends_early_uses_the_frames_it_covers(
     wall_euroc: Path, tmp_path: Path
 ) -> None:
     session = _session(wall_euroc, tmp_path / "session", drop_start_s=0.55, drop_end_s=0.75)
-    source = SessionInput(session)
+    source = open_input(session)
     # The MCAP reader hands messages over in log-time order, so the re-sent message
     # arrives as one more duplicate: every tenth row twice, plus that one.
     rows = len(source.imu) + source.imu_cleaning.duplicate_rows
