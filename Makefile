@@ -5,6 +5,10 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.wreckmap-installed
+# The suite on two workers (pytest-xdist): whole files at a time, the longest first (the
+# order tests/conftest.py gives them). PYTEST_WORKERS=0 runs it in one process.
+PYTEST_WORKERS ?= 2
+PYTEST_PARALLEL := -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 .PHONY: setup test test-fast lint demo bench clean
 
@@ -20,11 +24,11 @@ lint: setup
 	$(BIN)/mypy
 
 test: lint
-	$(BIN)/pytest
+	$(BIN)/pytest $(PYTEST_PARALLEL)
 
 # Skips tests marked slow: for a quick loop while editing.
 test-fast: setup
-	$(BIN)/pytest -m "not slow and not hardware and not gpu"
+	$(BIN)/pytest $(PYTEST_PARALLEL) -m "not slow and not hardware and not gpu"
 
 demo: setup
 	$(BIN)/python bench/demo.py --out demo-output

@@ -18,7 +18,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=240)
 @pytest.mark.timeout(2000)
 def test_reduced_demo(tmp_path: Path) -> None:
     out = tmp_path / "demo"
