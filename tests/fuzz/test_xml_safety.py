@@ -69,7 +69,9 @@ def test_entities_are_refused(tmp_path: Path, entry: str, payload: str) -> None:
     finally:
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
-    assert time.perf_counter() - start < 2.0
+    # A hang guard (an expanded entity bomb runs for minutes), not a speed check: a refusal
+    # takes a fraction of a second even on a loaded machine; the memory limit is the real test.
+    assert time.perf_counter() - start < 30.0
     assert peak < 8 << 20, f"peak {peak} bytes: the entity was expanded"
     assert "root:" not in str(caught.value)  # nothing of /etc/passwd leaked into the message
     assert not (tmp_path / "out").exists()
