@@ -88,13 +88,6 @@ import numpy.typing as npt
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("WRECKMAP_PROGRESS", "0")
 
-from postproc.merge.detect import (
-    DetectionOptions,
-    detect_tags,
-    homography_residuals_px,
-    line_fit_residuals_px,
-)
-from postproc.merge.stage import MergeOptions, run
 from postproc.merge.synthetic import (
     SurveyOptions,
     SurveyTruth,
@@ -104,7 +97,15 @@ from postproc.merge.synthetic import (
     random_pose_error,
     write_slam_folder,
 )
+
+from postproc.merge.stage import MergeOptions, run
 from shared.calibration.aprilgrid import AprilGridTarget
+from shared.calibration.aprilgrid_detection import (
+    DetectionOptions,
+    detect_tags,
+    homography_residuals_px,
+    line_fit_residuals_px,
+)
 from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose, make_pose, pose_difference, rotation_mean_chordal
 from shared.trajectory import Trajectory
@@ -494,13 +495,13 @@ def _rms(values: list[float]) -> float:
 def memoise_detections() -> None:
     """Detect each keyframe once for all methods (they share the detector and its settings).
 
-    The stage calls `postproc.merge.detect.detect_tags` per keyframe image; the
+    The stage calls `shared.calibration.aprilgrid_detection.detect_tags` per keyframe image; the
     result depends only on the pixels and the options, so it is kept by a digest
     of both. Everything after detection (PnP, averaging, alignment) runs per method.
     """
     import hashlib
 
-    import postproc.merge.detect as detect
+    import shared.calibration.aprilgrid_detection as detect
 
     original = detect.detect_tags
     memo: dict[bytes, object] = {}

@@ -56,8 +56,8 @@ from postproc.calibrate.visual_rotation import (
     rotation_from_features,
     target_from_cam,
 )
-from postproc.merge.detect import DetectionOptions, detect_tags, group_by_target
 from shared.calibration.aprilgrid import AprilGridTarget
+from shared.calibration.aprilgrid_detection import DetectionOptions, detect_tags, group_by_target
 from shared.calibration.kalibr import (
     CameraCalibration,
     read_camchain,

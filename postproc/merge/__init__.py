@@ -1,7 +1,8 @@
 """Stage 4: multi-session merging through AprilGrid targets.
 
-Modules: `detect` (tags in Kalibr's convention, sub-pixel corners), `target_pose`
-(whole-grid PnP through the camera model), `averaging` (robust SE(3) means and
+Tags are found by `shared.calibration.aprilgrid_detection` (Kalibr's convention,
+sub-pixel corners). Modules: `target_pose` (whole-grid PnP through the camera
+model), `averaging` (robust SE(3) means and
 their covariances; pure math), `align` (session-to-session transforms, 4 and 6
 DoF; pure math), `paper` (the paper's method, for comparison), `synthetic`
 (rendered views and SLAM-like folders for tests and the bench), `plots`, and

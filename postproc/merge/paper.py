@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from postproc.merge.detect import GridObservation
 from postproc.merge.target_pose import estimate_target_pose
+from shared.calibration.aprilgrid_detection import GridObservation
 from shared.calibration.cameras import CameraModel
 from shared.geometry import make_pose
 

@@ -91,9 +91,9 @@ from postproc.merge.averaging import (
     pose_residuals,
     robust_pose_mean,
 )
-from postproc.merge.detect import DetectionOptions
 from postproc.merge.joint import Edge, JointEstimate, solve_joint
 from postproc.merge.places import PairEvidence, PlaceOptions
+from shared.calibration.aprilgrid_detection import DetectionOptions
 from shared.errors import InputError, StageError
 from shared.fsutil import write_text_atomic
 from shared.trajectory import Trajectory
@@ -592,9 +592,9 @@ def _observe(
     """Detect, assign and PnP every keyframe of every session (with a progress bar)."""
     import cv2
 
-    from postproc.merge.detect import detect_tags, group_by_target
     from postproc.merge.paper import per_tag_target_pose
     from postproc.merge.target_pose import estimate_target_pose
+    from shared.calibration.aprilgrid_detection import detect_tags, group_by_target
     from shared.progress import progress_bar
 
     total = sum(len(s.images) for s in sessions)

@@ -42,7 +42,8 @@ upright marker reads most significant first, which is that matrix unrotated).
 OpenCV reports corners of the upright marker as top-left, top-right,
 bottom-right, bottom-left; on Kalibr's page those are Kalibr corners
 1, 0, 3, 2. Hence `kalibr_corners = opencv_corners[list(OPENCV_CORNER_ORDER)]`
-(the permutation is its own inverse).
+(the permutation is its own inverse). The detector that does so is
+`shared.calibration.aprilgrid_detection`.
 """
 
 from __future__ import annotations

@@ -9,13 +9,13 @@ import pytest
 
 from postproc.calibrate.intrinsics import IntrinsicsOptions, calibrate_intrinsics
 from postproc.calibrate.stage import detect_grid
-from postproc.merge.detect import (
+from shared.calibration.aprilgrid import AprilGridTarget
+from shared.calibration.aprilgrid_detection import (
     DetectionOptions,
     detect_tags,
     homography_residuals_px,
     line_fit_residuals_px,
 )
-from shared.calibration.aprilgrid import AprilGridTarget
 
 # The photos show a 6x6 Kalibr grid (ids 0..35) on a monitor; the size does not matter here.
 PHOTO_GRID = AprilGridTarget(tag_rows=6, tag_cols=6, tag_size_m=0.088, tag_spacing_ratio=0.3)

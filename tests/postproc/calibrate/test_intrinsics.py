@@ -12,7 +12,7 @@ from postproc.calibrate.intrinsics import (
     reprojection_errors_px,
 )
 from postproc.calibrate.stage import detect_grid
-from postproc.merge.detect import DetectionOptions
+from shared.calibration.aprilgrid_detection import DetectionOptions
 from shared.errors import StageError
 
 from .simulation import TARGET, board_views, equidistant_camera

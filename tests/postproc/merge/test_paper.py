@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from postproc.merge.synthetic import default_camera, look_at
 
-from postproc.merge.detect import GridObservation
 from postproc.merge.paper import (
     combine_candidates,
     euler_mean_pose,
@@ -14,8 +14,8 @@ from postproc.merge.paper import (
     one_sigma_average,
     per_tag_target_pose,
 )
-from postproc.merge.synthetic import default_camera, look_at
 from shared.calibration.aprilgrid import AprilGridTarget
+from shared.calibration.aprilgrid_detection import GridObservation
 from shared.geometry import invert_pose, make_pose, pose_difference, so3_exp
 
 

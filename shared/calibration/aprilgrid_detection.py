@@ -1,4 +1,5 @@
-"""AprilGrid detection in keyframes, in Kalibr's convention.
+"""AprilGrid detection in images, in Kalibr's convention (beside the target of
+`shared.calibration.aprilgrid`; calibration and merging both detect through it).
 
 Kalibr prints 36h11 tags with a two-cell black border and counts corners
 counter-clockwise from the bottom-left on the page (see

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from postproc.merge.synthetic import PlacedTarget, default_camera, look_at, render_view
 
-from postproc.merge.detect import (
+from shared.calibration.aprilgrid import AprilGridTarget
+from shared.calibration.aprilgrid_detection import (
     TagDetection,
     detect_tags,
     group_by_target,
@@ -13,8 +15,6 @@ from postproc.merge.detect import (
     line_fit_residuals_px,
     to_gray,
 )
-from postproc.merge.synthetic import PlacedTarget, default_camera, look_at, render_view
-from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.cameras import PinholeEquidistant
 from shared.geometry import invert_pose
 
