@@ -325,6 +325,10 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     # (checked below), but an hour earlier: nautic_multigas applies its 'Time offset
     # from UTC' of 3600 s, this reading does not.
     "suunto_nautic_sidemount.xml": (IMPORTS, [("2025-12-27T14:56:17", 420, 21.14)]),
+    # Subsurface's import of a Poseidon MkVI CSV log ('subsurface-import' version 2,
+    # times without 'min'): 1702 samples, the first seven with an empty temperature
+    # (temp=' C'), kept without one as Subsurface keeps them.
+    "Poseidon_MkVILog.xml": (IMPORTS, [("2011-06-14T11:20:00", 1702, 35.5)]),
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files

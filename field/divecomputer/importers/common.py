@@ -277,16 +277,26 @@ def combine_date_time(date_text: str, time_text: str | None) -> str:
 
 @dataclass
 class SampleProblems:
-    """Samples of one dive that were skipped, for one warning per dive."""
+    """Samples of one dive that were skipped, and values left out of samples that were
+    kept, for one warning each per dive."""
 
     count: int = 0
     first: str = ""
+    values_left_out: int = 0
+    first_value: str = ""
 
     def add(self, where: str, reason: str) -> None:
         """Count one skipped sample; the first reason is kept for the warning."""
         if self.count == 0:
             self.first = f"{where}: {reason}"
         self.count += 1
+
+    def leave_out_value(self, where: str, reason: str) -> None:
+        """Count one value read as absent in a sample that is kept (its time and depth
+        were read); the first reason is kept for the warning."""
+        if self.values_left_out == 0:
+            self.first_value = f"{where}: {reason}"
+        self.values_left_out += 1
 
 
 @dataclass
@@ -310,7 +320,8 @@ class LogbookReading:
             self.skip(where, "no samples")
 
     def warn_samples(self, where: str, problems: SampleProblems) -> None:
-        """One warning for the samples of a dive that could not be read."""
+        """One warning for the samples of a dive that could not be read, one for the
+        values left out of samples that were kept."""
         if problems.count:
             log.warning(
                 "%s: %d sample%s skipped (first: %s)",
@@ -318,6 +329,15 @@ class LogbookReading:
                 problems.count,
                 "" if problems.count == 1 else "s",
                 problems.first,
+            )
+        if problems.values_left_out:
+            log.warning(
+                "%s: %d sample value%s unreadable, the samples kept without %s (first: %s)",
+                where,
+                problems.values_left_out,
+                "" if problems.values_left_out == 1 else "s",
+                "it" if problems.values_left_out == 1 else "them",
+                problems.first_value,
             )
 
     def result(self, *, none_found: str) -> list[DiveProfile]:

@@ -13,8 +13,10 @@ Subsurface's first input is read too: libdivecomputer's XML dump, one or more to
 `<datetime>2011-07-16 14:19:15</datetime>` and `<sample><time>00:20</time><depth>2.05
 </depth><temperature>16.00</temperature></sample>` children. Every dive of the dump is read.
 
-A dive without a date or without samples is skipped with a warning; a sample that
-cannot be read is skipped with one warning per dive.
+A dive without a date or without samples is skipped with a warning; a sample whose
+time or depth cannot be read is skipped with one warning per dive. A temperature that
+cannot be read (an empty `temp=' C'`) leaves its sample without one, as in Subsurface,
+with one warning per dive.
 """
 
 from __future__ import annotations
@@ -100,11 +102,18 @@ def _samples(
             offset = duration_s_from_text(time_text)
             depth_text = field_text(sample, "depth")
             depth = float("nan") if depth_text is None else depth_m_from_text(depth_text)
-            temp_text = field_text(sample, "temp") or field_text(sample, "temperature")
-            temp = float("nan") if temp_text is None else temperature_c_from_text(temp_text)
         except ValueError as error:
             problems.add(sample_where, str(error))
             continue
+        temp_text = field_text(sample, "temp") or field_text(sample, "temperature")
+        try:
+            temp = float("nan") if temp_text is None else temperature_c_from_text(temp_text)
+        except ValueError as error:
+            # Subsurface's temperature() reports a "strange temperature reading" and
+            # leaves the sample without one: Subsurface's own CSV imports write an empty
+            # reading with its unit (temp=' C' in the Poseidon MkVI import).
+            problems.leave_out_value(sample_where, f"temperature: {error}")
+            temp = float("nan")
         offsets.append(offset)
         depths.append(depth)
         temps.append(temp)

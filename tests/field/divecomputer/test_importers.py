@@ -214,12 +214,6 @@ EXTERNAL = """<?xml version="1.0"?>
             "depth unit 'yd' in '3 yd'",
         ),
         (
-            "badtemp.ssrf",
-            "<divelog><dive date='2020-01-01'><sample time='1:00 min' depth='3 m' temp='3 X'/>"
-            "</dive></divelog>",
-            "temperature unit 'x'",
-        ),
-        (
             "notime.ssrf",
             "<divelog><dive date='2020-01-01'><sample depth='3 m' /></dive></divelog>",
             "sample 1: no time",
@@ -367,6 +361,62 @@ def test_subsurface_spellings_and_skipped_dives(
     assert any("dive 1 divecomputer 1: 1 sample skipped" in w and "'twelve'" in w for w in warnings)
     assert any(w.endswith("dive 2 divecomputer 1: skipped (no date)") for w in warnings)
     assert any(w.endswith("dive 4: skipped (no samples)") for w in warnings)
+
+
+# Subsurface's import of a Poseidon MkVI CSV log (its dives/Poseidon_MkVILog.xml): the
+# 'subsurface-import' version 2 format, times without 'min', and the first seconds with
+# an empty temperature (' C') and an empty oxygen pressure (' bar').
+POSEIDON_IMPORT = """<divelog program="subsurface-import" version="2">
+  <dives>
+    <dive date="2011-06-14" time="11:20">
+      <divecomputer model="Poseidon MkVI Discovery" deviceid='0567' dctype='CCR'>
+        <sample time="0:00" depth="1 m" o2pressure=" bar" temp=" C" PO2="NaN bar"/>
+        <sample time="0:02" depth="0.5 m" o2pressure=" bar" temp=" C" PO2="0.34 bar"/>
+        <sample time="0:07" depth="0 m" o2pressure="183 bar" temp="26.6 C" PO2="0.37 bar"/>
+        <sample time="1:5" depth=" m" temp="26.4 C"/>
+      </divecomputer>
+    </dive>
+  </dives>
+</divelog>
+"""
+
+
+def test_unreadable_temperature_keeps_its_sample(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "poseidon.xml"
+    path.write_text(POSEIDON_IMPORT)
+    (dive,) = read_logbook(path)
+    assert dive.start_iso == "2011-06-14T11:20:00"
+    # The samples with temp=' C' are kept without a temperature (Subsurface's
+    # temperature() leaves it unset); the one whose depth cannot be read is skipped.
+    assert (dive.stamps_s - dive.start_s).tolist() == [0.0, 2.0, 7.0]
+    assert dive.depth_m.tolist() == [1.0, 0.5, 0.0]
+    assert np.isnan(dive.temperature_c[:2]).all() and dive.temperature_c[2] == 26.6
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any(
+        "dive 1 divecomputer 1: 2 sample values unreadable, the samples kept without them "
+        "(first: sample at 0:00: temperature:" in w
+        for w in warnings
+    ), warnings
+    skipped = "dive 1 divecomputer 1: 1 sample skipped (first: sample at 1:5"
+    assert any(skipped in w for w in warnings)
+
+
+def test_unknown_temperature_unit_keeps_the_sample(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A temperature in a unit we do not know is left out, its sample kept (this file was
+    refused whole before the Poseidon import showed that Subsurface keeps such samples)."""
+    path = tmp_path / "badtemp.ssrf"
+    path.write_text(
+        "<divelog><dive date='2020-01-01'><sample time='1:00 min' depth='3 m' temp='3 X'/>"
+        "</dive></divelog>"
+    )
+    (dive,) = read_logbook(path)
+    assert dive.depth_m.tolist() == [3.0] and np.isnan(dive.temperature_c).all()
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("1 sample value unreadable" in w and "temperature unit 'x'" in w for w in warnings)
 
 
 PLACEHOLDER_UDDF = """<?xml version="1.0" encoding="UTF-8"?>
