@@ -7,12 +7,15 @@ run (`engine="mcap"`, the mcap package, and `engine="wreckmap"`, our own),
 interleaved so that both see the same machine load, and prints messages/s and
 MB/s (MB = 1e6 bytes of CDR payload) for each, then the ratio between them.
 Reads the mcap-written files back with our reader (`ArchiveReader`) and with
-the mcap package's reader (`mcap.reader.make_reader`, log-time order): IMU
+the mcap package's reader (`mcap.reader.make_reader`, log-time order, chunk
+CRCs checked as ours always does): IMU
 through `read_imu` (both decode with `cdr.decode_imu_batch`), video as raw
 CDR records. The load
 average is printed at the start and the end: on a shared machine the absolute
 figures move with it, the ratios much less. The recorder needs >= 20k IMU
-msgs/s and 30 fps video.
+msgs/s and 30 fps video; the last figures are the CPU time each writer spends
+on the recorder's own stream (bench_record.py's rig, at its writer settings)
+as a share of one core, the writer's part of the recorder's 10 % budget.
 """
 
 from __future__ import annotations
@@ -30,7 +33,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shared.archive import ArchiveWriter, CompressedVideo, Imu, imu_topic, video_topic
+from shared.archive import (
+    ArchiveWriter,
+    CompressedVideo,
+    DepthSample,
+    Imu,
+    depth_topic,
+    imu_topic,
+    video_topic,
+)
 from shared.archive.cdr import decode_imu_batch, encode
 from shared.archive.reader import ArchiveReader
 
@@ -105,7 +116,8 @@ def read_imu_mcap(path: Path, topic: str) -> int:
     from mcap.reader import make_reader
 
     with path.open("rb") as stream:
-        payloads = [m.data for _, _, m in make_reader(stream).iter_messages(topics=[topic])]
+        reader = make_reader(stream, validate_crcs=True)
+        payloads = [m.data for _, _, m in reader.iter_messages(topics=[topic])]
     return len(decode_imu_batch(payloads, str(path)).stamps_ns)
 
 
@@ -118,7 +130,8 @@ def read_raw_mcap(path: Path, topic: str) -> int:
     from mcap.reader import make_reader
 
     with path.open("rb") as stream:
-        return sum(1 for _ in make_reader(stream).iter_messages(topics=[topic]))
+        reader = make_reader(stream, validate_crcs=True)
+        return sum(1 for _ in reader.iter_messages(topics=[topic]))
 
 
 def bench_imu(folder: Path, count: int, repeats: int) -> dict[tuple[str, str], float]:
@@ -177,10 +190,85 @@ def bench_video(folder: Path, count: int, repeats: int) -> dict[tuple[str, str],
     return rates
 
 
+def recorder_stream(seconds: float) -> list[tuple[float, str, Imu | CompressedVideo | DepthSample]]:
+    """What `wreckmap-field record` writes (bench_record's rig): two 30 fps H.264 streams
+    at 8 Mb/s, a 400 Hz IMU and a 4 Hz depth sensor; (stream time s, topic, message)."""
+    rng = np.random.default_rng(2)
+    packet_bytes = 8_000_000 // 8 // 30
+    out: list[tuple[float, str, Imu | CompressedVideo | DepthSample]] = []
+    for i in range(round(seconds * 400)):
+        t = i / 400
+        out.append(
+            (
+                t,
+                imu_topic(0),
+                Imu(
+                    stamp_ns=T0_NS + i * 2_500_000,
+                    frame_id="imu0",
+                    angular_velocity_rad_s=rng.normal(size=3),
+                    linear_acceleration_m_s2=rng.normal(size=3),
+                ),
+            )
+        )
+        if i % 100 == 0:
+            out.append(
+                (t, depth_topic(0), DepthSample(stamp_ns=T0_NS + i * 2_500_000, frame_id="d"))
+            )
+    for i in range(round(seconds * 30)):
+        for camera in (0, 1):
+            # Fresh random bytes per packet: H.264 does not compress (a repeated buffer would).
+            message = CompressedVideo(
+                stamp_ns=T0_NS + i * 33_333_333,
+                frame_id=f"cam{camera}",
+                format="h264",
+                data=rng.bytes(packet_bytes),
+            )
+            out.append((i / 30, video_topic(camera), message))
+    out.sort(key=lambda item: item[0])
+    return out
+
+
+def write_like_the_recorder(
+    path: Path, stream: list[tuple[float, str, Imu | CompressedVideo | DepthSample]], engine: str
+) -> None:
+    """The recorder's writer settings: 1 MiB chunks, zstd, flush + fsync every 0.5 s."""
+    path.unlink(missing_ok=True)
+    next_flush = 0.5
+    with ArchiveWriter(path, chunk_size=2**20, compression="zstd", engine=engine) as writer:  # type: ignore[arg-type]
+        for t, topic, message in stream:
+            if t >= next_flush:
+                writer.flush(fsync=True)
+                next_flush += 0.5
+            writer.write(topic, message)
+
+
+def bench_recorder_share(folder: Path, seconds: float, repeats: int) -> dict[str, float]:
+    """CPU time (user + system, this process) of writing `seconds` of the recorder's
+    stream, as a share of one core at real-time rate: the writer's part of the
+    recorder's CPU figure (bench_record.py measures the whole recorder)."""
+    stream = recorder_stream(seconds)
+    shares: dict[str, float] = {}
+    for engine in ENGINES:
+        path = folder / f"recorder_{engine}.mcap"
+        best = float("inf")
+        for _ in range(repeats):
+            start = time.process_time()
+            write_like_the_recorder(path, stream, engine)
+            best = min(best, time.process_time() - start)
+        shares[engine] = best / seconds
+        print(
+            f"recorder stream ({seconds:.0f} s, {len(stream)} messages, "
+            f"{path.stat().st_size / 2**20:.0f} MiB) {engine:8}: writer CPU "
+            f"{100 * shares[engine]:.2f} % of one core"
+        )
+    return shares
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--imu-messages", type=int, default=200_000)
     parser.add_argument("--video-packets", type=int, default=300)
+    parser.add_argument("--recorder-seconds", type=float, default=60.0)
     parser.add_argument("--repeats", type=int, default=3, help="best of N runs per figure")
     args = parser.parse_args()
     print(f"start: {load_average()}")
@@ -188,11 +276,13 @@ def main() -> None:
         folder = Path(tmp)
         imu = bench_imu(folder, args.imu_messages, args.repeats)
         video = bench_video(folder, args.video_packets, args.repeats)
+        shares = bench_recorder_share(folder, args.recorder_seconds, args.repeats)
     print(f"end:   {load_average()}")
     print(
         "summary (zstd): IMU wreckmap {:,.0f} / mcap {:,.0f} msg/s (x{:.2f}); "
         "video wreckmap {:.0f} / mcap {:.0f} MB/s (x{:.2f}); "
-        "read_imu ours {:,.0f} / mcap {:,.0f} msg/s (x{:.2f})".format(
+        "read_imu ours {:,.0f} / mcap {:,.0f} msg/s (x{:.2f}); "
+        "recorder writer CPU wreckmap {:.2f} % / mcap {:.2f} % of one core".format(
             imu[("wreckmap", "zstd")],
             imu[("mcap", "zstd")],
             imu[("wreckmap", "zstd")] / imu[("mcap", "zstd")],
@@ -202,6 +292,8 @@ def main() -> None:
             imu[("read_imu", "ours")],
             imu[("read_imu", "mcap")],
             imu[("read_imu", "ours")] / imu[("read_imu", "mcap")],
+            100 * shares["wreckmap"],
+            100 * shares["mcap"],
         )
     )
 

@@ -801,6 +801,7 @@ def import_recording(
             tmp / "recording.mcap",
             compression=options.compression,
             chunk_size=options.chunk_size_bytes,
+            engine="wreckmap",  # bulk copy: our record writer (shared/archive/writer.py says why)
             metadata={
                 "session_id": session_id,
                 "source": "gopro",

@@ -21,9 +21,9 @@ tests/shared/test_archive_engines.py and bench/bench_archive.py):
   chunk; this reader returns every complete chunk and goes past damaged ones.
 - Loading chunks and messages stays ours: mcap's `iter_messages` builds a
   record object per message and a heap entry in log-time order; with our
-  batch CDR decode it reads IMU about 4-6x slower than `read_imu` here. Ours
-  also bounds zstd output by the chunk's declared size (a zstd bomb is skipped
-  without being inflated) and checks chunk CRCs always.
+  batch CDR decode it reads IMU about 4x slower than `read_imu` here. Ours
+  also pulls zstd output in pieces, never past the chunk's declared size (the
+  zstd-bomb fuzz case), and always checks chunk CRCs.
 - Topic counts and spans come from the message indexes, read with numpy
   (mcap's reader has no public access to them).
 """
