@@ -503,6 +503,7 @@ class ArchiveWriter:
             raise
         self._lock = threading.Lock()
         self._closed = False
+        self._final_size = 0
         self._schema_texts: dict[type[Any], bytes] = {}
         self._channels: dict[str, _Channel] = {}
         if metadata:
@@ -523,6 +524,8 @@ class ArchiveWriter:
     @property
     def bytes_written(self) -> int:
         """File bytes so far plus the uncompressed chunk in progress (for size-based rotation)."""
+        if self._closed:
+            return self._final_size
         return self._file.tell() + self._records.pending_bytes
 
     def write(self, topic: str, message: ArchiveMessage, *, log_time_ns: int | None = None) -> None:
@@ -649,6 +652,7 @@ class ArchiveWriter:
                 self._records.finish()
                 self._file.flush()
                 os.fsync(self._file.fileno())
+                self._final_size = self._file.tell()
             finally:
                 self._file.close()
             if not rename:

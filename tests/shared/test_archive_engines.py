@@ -288,6 +288,22 @@ def test_numpy_integer_log_times_are_accepted(tmp_path: Path) -> None:
         assert [lt for _, lt, _ in reader.messages()] == [T0 + 5]
 
 
+@pytest.mark.parametrize("engine", ENGINES)
+def test_bytes_written_follows_the_file(tmp_path: Path, engine: str) -> None:
+    path = tmp_path / "rec.mcap"
+    writer = ArchiveWriter(path, engine=engine, chunk_size=2000)  # type: ignore[arg-type]
+    sizes = []
+    for topic, message in session(7, imu_count=100):
+        writer.write(topic, message)
+        sizes.append(writer.bytes_written)
+    writer.flush()
+    on_disk = part_path(path).stat().st_size
+    assert writer.bytes_written == on_disk  # nothing pending after a flush
+    assert sizes[0] < sizes[len(sizes) // 2] < sizes[-1] <= on_disk + 2000
+    writer.close()
+    assert writer.bytes_written == path.stat().st_size > on_disk  # summary on top
+
+
 def test_unknown_engine(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="engine 'rosbag': expected 'mcap' or 'wreckmap'"):
         ArchiveWriter(tmp_path / "a.mcap", engine="rosbag")  # type: ignore[arg-type]
