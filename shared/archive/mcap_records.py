@@ -1,10 +1,17 @@
-"""MCAP record layouts (opcodes, byte packing) shared by the archive writer and reader.
+"""MCAP record layouts (opcodes, byte packing) for our own record writer and the reader.
 
 Only what wreckmap's archives use: Header, Footer, Schema, Channel, Message,
 Chunk, MessageIndex, ChunkIndex, Statistics, Metadata, MetadataIndex,
 SummaryOffset and DataEnd, all little-endian as the MCAP specification
 defines them (strings and maps carry a uint32 byte-length prefix, every
 record is opcode uint8 + length uint64 + body).
+
+The mcap package has these records too (`mcap.records`), as one object per
+record. They stay here for the two places where that cost shows: the
+`engine="wreckmap"` writer packs messages straight into a chunk buffer
+(`MESSAGE_HEAD`, 2x the mcap writer's IMU rate), and the reader walks chunks
+and salvages files with `struct` on memoryviews (shared/archive/reader.py
+says what it reads through mcap instead).
 """
 
 from __future__ import annotations
