@@ -98,8 +98,13 @@ def session_messages(rng: np.random.Generator, t0: int = T0) -> list[tuple[str, 
     return out
 
 
-def write(path: Path, messages: list[tuple[str, ArchiveMessage]]) -> None:
-    with ArchiveWriter(path, chunk_size=4000, metadata={"session_id": "abc"}) as writer:
+def write(path: Path, messages: list[tuple[str, ArchiveMessage]], engine: str = "mcap") -> None:
+    with ArchiveWriter(
+        path,
+        chunk_size=4000,
+        metadata={"session_id": "abc"},
+        engine=engine,  # type: ignore[arg-type]
+    ) as writer:
         for topic, message in messages:
             writer.write(topic, message)
 
@@ -108,10 +113,11 @@ def f64(value: float) -> bytes:
     return np.float64(value).tobytes()
 
 
-def test_mcap_library_reads_our_archive(tmp_path: Path) -> None:
+@pytest.mark.parametrize("engine", ["mcap", "wreckmap"])
+def test_mcap_library_reads_our_archive(tmp_path: Path, engine: str) -> None:
     messages = session_messages(np.random.default_rng(1))
     path = tmp_path / "rec.mcap"
-    write(path, messages)
+    write(path, messages, engine)
     with path.open("rb") as stream:
         reader = make_reader(stream, validate_crcs=True)
         assert reader.get_header().profile == "ros2"
@@ -189,10 +195,11 @@ def read_with_rosbags(paths: list[Path]) -> list[tuple[str, int, Any]]:
         ]
 
 
-def test_rosbags_reads_bare_mcap(tmp_path: Path) -> None:
+@pytest.mark.parametrize("engine", ["mcap", "wreckmap"])
+def test_rosbags_reads_bare_mcap(tmp_path: Path, engine: str) -> None:
     messages = session_messages(np.random.default_rng(2))
     path = tmp_path / "rec.mcap"
-    write(path, messages)
+    write(path, messages, engine)
     got = read_with_rosbags([path])
     expected = sorted(messages, key=lambda tm: tm[1].stamp_ns)
     assert sorted((t, lt) for t, lt, _ in got) == sorted((t, m.stamp_ns) for t, m in messages)
