@@ -340,8 +340,13 @@ SAME_DIVES = {
     ("../shared/ostc.xml", "vyper.xml"): "mergedVyperOstc.xml",
 }
 
-# Files holding the same profile under two versions of Subsurface's format.
-SAME_PROFILE = [("test40.xml", "test42.xml"), ("test16.xml", "test17.xml")]
+# Files holding the same profile under two versions of Subsurface's format, or the same
+# dive written again by Subsurface's renumbering test (another site, a second dive).
+SAME_PROFILE = [
+    ("test40.xml", "test42.xml"),
+    ("test16.xml", "test17.xml"),
+    ("test47.xml", "test47b.xml"),
+]
 
 
 def corpus_files() -> list[str]:
@@ -457,6 +462,18 @@ def test_corpus_same_profile_in_two_spellings(first: str, second: str) -> None:
     (b,) = read_logbook(CORPUS / second)
     np.testing.assert_array_equal(a.stamps_s - a.stamps_s[0], b.stamps_s - b.stamps_s[0])
     np.testing.assert_array_equal(a.depth_m, b.depth_m)
+
+
+def test_test47c_is_test47b_and_one_more_dive() -> None:
+    """test47c.xml (Subsurface's merge-and-append renumbering input) holds test47b's dive
+    unchanged and a second dive with the same profile 2 min 40 s later."""
+    (b,) = read_logbook(CORPUS / "test47b.xml")
+    first, second = read_logbook(CORPUS / "test47c.xml")
+    assert (first.start_iso, first.fingerprint) == (b.start_iso, b.fingerprint)
+    np.testing.assert_array_equal(first.stamps_s, b.stamps_s)
+    np.testing.assert_array_equal(second.stamps_s - 160.0, b.stamps_s)
+    np.testing.assert_array_equal(second.depth_m, b.depth_m)
+    assert second.fingerprint != first.fingerprint
 
 
 def test_test40_and_test42_match_subsurface_reading() -> None:
