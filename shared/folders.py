@@ -10,15 +10,34 @@ the field side, the pipeline's scheduler and the command lines can all use them.
 - `CalibrationFolder`: the pipeline's calibrate stage (a Kalibr camchain).
 - `SlamFolder`: `wreckmap-post slam`; its depth stage lives inside it (`depth/`).
 - `DepthFolder`, `MergeFolder`, `SfmFolder`, `DenseFolder`: the later stages.
+
+The resume rule, the same for every stage (`rebuild`): a complete result made from the
+same inputs with the same options (its stamp, `.wreckmap-result.json`, says so) is kept;
+anything else in the way is refused unless overwrite. With overwrite (or nothing there)
+the result is built under a temporary name beside its place and swapped in whole when
+complete. The temporary name follows from the
+stamp, so an interrupted build of a stage that can resume its own work (per-image depth
+maps, SfM features) resumes there on the next run with the same inputs and options.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import hashlib
 import json
+import logging
+import shutil
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
-from shared.errors import InputError
+from shared.errors import InputError, OutputExistsError, StageError
+from shared.fsutil import atomic_path, write_text_atomic
+
+log = logging.getLogger(__name__)
+
+RESULT_STAMP = ".wreckmap-result.json"
 
 
 class HandoffFolder:
@@ -107,7 +126,14 @@ class SessionFolder(HandoffFolder):
 
 
 class CalibrationFolder(HandoffFolder):
-    """The calibrate stage: camchain.yaml (Kalibr), camera/ and imu/ with their reports."""
+    """The calibrate stage: camchain.yaml (Kalibr); in the pipeline camera/ and imu/ hold
+    the two steps' own outputs.
+
+    The steps of `wreckmap-post calibrate` may share one folder, each with its own
+    outputs: camera (camchain.yaml, camera_calibration.json, coverage.png), imu
+    (camchain-imucam.yaml, camera_imu.json, camera_imu.png) and rig (camchain-rig.yaml,
+    rig.json); each step's camchain is its marker (`rebuild_files`).
+    """
 
     kind = "calibration"
     marker = "camchain.yaml"
@@ -115,6 +141,35 @@ class CalibrationFolder(HandoffFolder):
     @property
     def camchain(self) -> Path:
         return self.path / "camchain.yaml"
+
+    @property
+    def camera_report(self) -> Path:
+        return self.path / "camera_calibration.json"
+
+    @property
+    def coverage_plot(self) -> Path:
+        return self.path / "coverage.png"
+
+    @property
+    def imu_camchain(self) -> Path:
+        """The camera-IMU step's camchain (T_cam_imu, timeshift_cam_imu)."""
+        return self.path / "camchain-imucam.yaml"
+
+    @property
+    def imu_report(self) -> Path:
+        return self.path / "camera_imu.json"
+
+    @property
+    def imu_plot(self) -> Path:
+        return self.path / "camera_imu.png"
+
+    @property
+    def rig_camchain(self) -> Path:
+        return self.path / "camchain-rig.yaml"
+
+    @property
+    def rig_report(self) -> Path:
+        return self.path / "rig.json"
 
     @property
     def camera(self) -> Path:
@@ -156,7 +211,7 @@ class SlamFolder(HandoffFolder):
     keyframes), keyframes/<timestamp_ns>.png, calib/camchain.yaml, map.ply, stats.json;
     the depth stage's folder `depth/` inside."""
 
-    kind = "SLAM result"
+    kind = "SLAM"
     marker = "stats.json"
 
     @property
@@ -182,6 +237,11 @@ class SlamFolder(HandoffFolder):
     @property
     def camchain(self) -> Path:
         return self.calib / "camchain.yaml"
+
+    @property
+    def imu_yaml(self) -> Path:
+        """The IMU noise model used (absent for a visual-only run)."""
+        return self.calib / "imu.yaml"
 
     @property
     def map_ply(self) -> Path:
@@ -231,7 +291,8 @@ class MergeFolder(HandoffFolder):
 
 class SfmFolder(HandoffFolder):
     """The SfM stage: sparse/0 (COLMAP binary model), images/, database.db, pairs.txt,
-    sessions/<name>/keyframes.tum, transforms.json, stats.json."""
+    sessions/<name>/keyframes.tum and keyframes_world.tum, keyframes.tum (one session),
+    transforms.json, stats.json."""
 
     kind = "SfM"
     marker = "stats.json"
@@ -260,17 +321,30 @@ class SfmFolder(HandoffFolder):
     def transforms(self) -> Path:
         return self.path / "transforms.json"
 
+    @property
+    def keyframes_tum(self) -> Path:
+        """The refined keyframe poses of a single-session run, in the input's frame."""
+        return self.path / "keyframes.tum"
+
     def session(self, name: str) -> Path:
         """The folder of one session's refined keyframes."""
         return self.path / "sessions" / name
+
+    def session_keyframes(self, name: str) -> Path:
+        """One session's refined keyframe poses in the input's frame (T_S_C or T_W_C)."""
+        return self.session(name) / "keyframes.tum"
+
+    def session_keyframes_world(self, name: str) -> Path:
+        """One session's refined keyframe poses in the world frame (T_W_C)."""
+        return self.session(name) / "keyframes_world.tum"
 
     def read_stats(self) -> dict[str, Any]:
         return self.read_json(self.stats)
 
 
 class DenseFolder(HandoffFolder):
-    """The dense stage: workspace/ (COLMAP dense workspace), fused.ply, mesh.ply,
-    fused_corrected.ply (with colour correction), dense.json."""
+    """The dense stage: workspace/ (COLMAP dense workspace), fused.ply (+ .vis), mesh.ply,
+    fused_corrected.ply (with colour correction), fused_supported.ply, dense.json."""
 
     kind = "dense"
     marker = "dense.json"
@@ -292,8 +366,18 @@ class DenseFolder(HandoffFolder):
         return self.path / "mesh.ply"
 
     @property
+    def fused_visibility(self) -> Path:
+        """COLMAP's list of the images each fused point was seen in."""
+        return self.path / "fused.ply.vis"
+
+    @property
     def fused_corrected(self) -> Path:
         return self.path / "fused_corrected.ply"
+
+    @property
+    def fused_supported(self) -> Path:
+        """The fused points seen in enough images, which the mesh is built from."""
+        return self.path / "fused_supported.ply"
 
     def read_report(self) -> dict[str, Any]:
         return self.read_json(self.report)
@@ -308,3 +392,168 @@ FOLDER_KINDS: tuple[type[HandoffFolder], ...] = (
     SfmFolder,
     DenseFolder,
 )
+
+
+# ------------------------------------------------------------------------------ resume rule
+
+F = TypeVar("F", bound=HandoffFolder)
+
+
+def jsonable(value: Any) -> Any:
+    """Options as JSON: dataclasses as mappings, Paths as strings, tuples as lists,
+    anything else by repr."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return jsonable(dataclasses.asdict(value))
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    return repr(value)
+
+
+def fingerprint(path: Path | str | None) -> str | None:
+    """What an input looks like without reading it: the resolved path, size and
+    modification time of the file, or of every file under the folder (None: no input;
+    a path that does not exist is fingerprinted as missing)."""
+    if path is None:
+        return None
+    path = Path(path)
+    if not path.exists():
+        return f"missing {path}"  # the stage's own reader says what it expected there
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    h = hashlib.sha256(str(path.resolve()).encode())
+    for file in files:
+        stat = file.stat()
+        h.update(f"\0{file.relative_to(path)}\0{stat.st_size}\0{stat.st_mtime_ns}".encode())
+    return h.hexdigest()
+
+
+def result_stamp(stage: str, options: Any, **inputs: Any) -> dict[str, Any]:
+    """The stamp of a result: the stage, its options and a fingerprint of each input
+    (a path, a list of paths or None)."""
+
+    def prints(value: Any) -> Any:
+        if isinstance(value, list | tuple):
+            return [fingerprint(v) for v in value]
+        return fingerprint(value)
+
+    return {
+        "stage": stage,
+        "options": jsonable(options),
+        "inputs": {name: prints(value) for name, value in sorted(inputs.items())},
+    }
+
+
+def read_result_stamp(folder: HandoffFolder) -> dict[str, Any] | None:
+    """The stamp a finished result was written with, or None."""
+    try:
+        document = json.loads((folder.path / RESULT_STAMP).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return document if isinstance(document, dict) else None
+
+
+def _partial(folder: F, stamp: dict[str, Any]) -> F:
+    digest = hashlib.sha256(json.dumps(stamp, sort_keys=True).encode()).hexdigest()[:12]
+    name = f".{folder.path.name}.partial-{digest}"
+    return type(folder)(folder.path.with_name(name))
+
+
+@contextlib.contextmanager
+def rebuild(
+    folder: F, stamp: dict[str, Any], *, overwrite: bool = False, resumable: bool = False
+) -> Iterator[F | None]:
+    """The resume rule (module docstring) around a stage's writing.
+
+    Yields None when `folder` already holds a complete result with this `stamp` and not
+    `overwrite` (keep it, write nothing); else a partial folder of the same kind to write
+    the result into, which is stamped, checked for the kind's marker and swapped in for
+    `folder` when the block ends. Raises OutputExistsError when something else is in the way and not
+    `overwrite`. resumable: the stage resumes an interrupted build from what its partial
+    folder holds (else a partial left by an interrupted build is emptied first).
+    """
+    out = folder.path
+    present = out.is_dir() and any(out.iterdir())
+    if out.exists() and not out.is_dir():
+        raise OutputExistsError(f"{out}: a file is in the way (expected a {folder.kind} folder)")
+    if present:
+        if not overwrite and folder.is_complete() and read_result_stamp(folder) == stamp:
+            log.info("%s: %s result up to date (same inputs and options): kept", out, folder.kind)
+            yield None
+            return
+        if not overwrite:
+            what = (
+                f"holds a {folder.kind} result of other inputs or options"
+                if folder.is_complete()
+                else f"holds other files, not a complete {folder.kind} folder"
+            )
+            raise OutputExistsError(f"{out}: {what} (refusing to overwrite; pass overwrite)")
+    partial = _partial(folder, stamp)
+    if partial.path.exists() and not resumable:
+        shutil.rmtree(partial.path)
+    partial.path.mkdir(parents=True, exist_ok=True)
+    try:
+        yield partial
+    except BaseException:
+        if not resumable:
+            shutil.rmtree(partial.path, ignore_errors=True)
+        raise
+    if not partial.is_complete():
+        shutil.rmtree(partial.path, ignore_errors=True)
+        raise StageError(f"{out}: the {folder.kind} stage finished without writing {folder.marker}")
+    write_text_atomic(
+        partial.path / RESULT_STAMP, json.dumps(stamp, indent=2) + "\n", overwrite=True
+    )
+    with atomic_path(out, overwrite=True) as tmp:
+        partial.path.rename(tmp)
+
+
+@contextlib.contextmanager
+def rebuild_files(
+    folder: F, marker: Path, stamp: dict[str, Any], *, overwrite: bool = False
+) -> Iterator[F | None]:
+    """The resume rule for one step of several that share a folder (the calibration
+    steps): the step's outputs, `marker` the one it writes last, are its result.
+
+    Yields None when `marker` exists from a run with this `stamp` and not `overwrite`;
+    raises OutputExistsError when it exists from another run and not `overwrite`; else
+    yields a partial folder of the same kind beside `folder` to write the step's files
+    into, which are moved into `folder` when the block ends (the marker last) and the
+    step's stamp written beside them. Other files in `folder` are left alone.
+    """
+    stamp_path = folder.path / f".wreckmap-result-{marker.stem}.json"
+    if marker.exists() and not overwrite:
+        try:
+            previous = json.loads(stamp_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            previous = None
+        if previous == stamp:
+            log.info("%s: up to date (same inputs and options): kept", marker)
+            yield None
+            return
+        raise OutputExistsError(
+            f"{marker}: a result of other inputs or options (refusing to overwrite; pass overwrite)"
+        )
+    if folder.path.exists() and not folder.path.is_dir():
+        raise OutputExistsError(f"{folder.path}: a file is in the way (expected a folder)")
+    partial = _partial(folder, {**stamp, "marker": marker.name})
+    shutil.rmtree(partial.path, ignore_errors=True)
+    partial.path.mkdir(parents=True)
+    try:
+        yield partial
+        if not (partial.path / marker.name).is_file():
+            raise StageError(f"{folder.path}: the step finished without writing {marker.name}")
+        folder.path.mkdir(parents=True, exist_ok=True)
+        entries = sorted(partial.path.iterdir(), key=lambda p: p.name == marker.name)
+        for entry in entries:
+            target = folder.path / entry.name
+            if target.is_dir() and not target.is_symlink():
+                shutil.rmtree(target)
+            entry.replace(target)
+        write_text_atomic(stamp_path, json.dumps(stamp, indent=2) + "\n", overwrite=True)
+    finally:
+        shutil.rmtree(partial.path, ignore_errors=True)

@@ -16,7 +16,10 @@ Three entry points, each `run_*(options, inputs..., out_dir, *, overwrite=False)
   translation between the rigs is not observable from gyros and is written as zero),
   `rig.json`.
 
-A stage whose main output exists returns it without work unless `overwrite` is set.
+The steps may share one folder (`shared.folders.CalibrationFolder` names the files).
+Each follows the resume rule of every stage (`shared.folders.rebuild_files`): a result
+of the same inputs and options is kept; another is refused unless `overwrite`, then
+rebuilt under a temporary name and moved into place.
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ from shared.calibration.kalibr import (
     write_camchain,
 )
 from shared.errors import InputError, StageError
+from shared.folders import CalibrationFolder, rebuild_files, result_stamp
 from shared.fsutil import write_text_atomic
 from shared.geometry import so3_log
 from shared.progress import progress
@@ -73,14 +77,6 @@ log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 
-CAMCHAIN_NAME = "camchain.yaml"
-CAMERA_REPORT_NAME = "camera_calibration.json"
-COVERAGE_PLOT_NAME = "coverage.png"
-IMUCAM_NAME = "camchain-imucam.yaml"
-IMU_REPORT_NAME = "camera_imu.json"
-IMU_PLOT_NAME = "camera_imu.png"
-RIG_NAME = "camchain-rig.yaml"
-RIG_REPORT_NAME = "rig.json"
 NS_PER_S = 1_000_000_000
 
 
@@ -193,11 +189,17 @@ def run_camera(
 
     Raises InputError for unreadable inputs, StageError when too few usable views.
     """
-    out = Path(out_dir)
-    camchain_path = out / CAMCHAIN_NAME
-    if camchain_path.exists() and not overwrite:
-        log.info("%s exists: camera calibration already done (overwrite to redo)", camchain_path)
-        return camchain_path
+    folder = CalibrationFolder(out_dir)
+    stamp = result_stamp("calibrate camera", options, source=source_path, target=target_path)
+    with rebuild_files(folder, folder.camchain, stamp, overwrite=overwrite) as work:
+        if work is not None:
+            _camera(options, Path(source_path), Path(target_path), work)
+    return folder.camchain
+
+
+def _camera(
+    options: CameraCalibrationOptions, source_path: Path, target_path: Path, out: CalibrationFolder
+) -> None:
     target = read_target_yaml(target_path)
     views, size, examined, topic = collect_views(
         source_path,
@@ -223,11 +225,10 @@ def run_camera(
         reprojection_errors_px(result.camera, pose, view)
         for pose, view in zip(result.cam_from_target, used, strict=True)
     ]
-    out.mkdir(parents=True, exist_ok=True)
     from postproc.calibrate.plots import plot_coverage
 
     plot_coverage(
-        out / COVERAGE_PLOT_NAME,
+        out.coverage_plot,
         image_size=size,
         corners_px=[v.image_points_px for v in used],
         errors_px=errors,
@@ -235,12 +236,11 @@ def run_camera(
         title=f"{options.intrinsics.model}: RMS {result.rms_px:.3f} px, "
         f"coverage {100 * coverage:.0f} % of {options.coverage_cells[0]}x"
         f"{options.coverage_cells[1]} cells",
-        overwrite=overwrite,
     )
     camera = result.camera
     K = camera.intrinsic_matrix
     _json(
-        out / CAMERA_REPORT_NAME,
+        out.camera_report,
         {
             "source": str(source_path),
             "target": str(target_path),
@@ -271,10 +271,10 @@ def run_camera(
                 for i in result.views_dropped
             ],
         },
-        overwrite,
+        False,
     )
     calibration = CameraCalibration(camera=camera, topic=topic, name="cam0")
-    return write_camchain(camchain_path, [calibration], overwrite=overwrite)
+    write_camchain(out.camchain, [calibration])
 
 
 # ------------------------------------------------------------------------------ camera-IMU
@@ -403,11 +403,24 @@ def run_imu(
     target_path: the AprilGrid YAML when the grid is in view (poses from it are far more
     accurate than from features); None: features only.
     """
-    out = Path(out_dir)
-    output_path = out / IMUCAM_NAME
-    if output_path.exists() and not overwrite:
-        log.info("%s exists: camera-IMU calibration already done (overwrite to redo)", output_path)
-        return output_path
+    folder = CalibrationFolder(out_dir)
+    stamp = result_stamp(
+        "calibrate imu", options, recording=recording_path, camchain=camchain_path,
+        target=target_path,
+    )  # fmt: skip
+    with rebuild_files(folder, folder.imu_camchain, stamp, overwrite=overwrite) as work:
+        if work is not None:
+            _imu(options, recording_path, camchain_path, target_path, work)
+    return folder.imu_camchain
+
+
+def _imu(
+    options: ImuCalibrationOptions,
+    recording_path: Path | str,
+    camchain_path: Path | str,
+    target_path: Path | str | None,
+    out: CalibrationFolder,
+) -> None:
     cameras = read_camchain(camchain_path)
     if not 0 <= options.camera_index < len(cameras):
         raise InputError(
@@ -435,21 +448,19 @@ def run_imu(
     cam_from_imu[:3, 3] = old[:3, 3]
     calibration.cam_from_imu = cam_from_imu
     calibration.timeshift_cam_imu_s = result.timeshift_cam_imu_s
-    out.mkdir(parents=True, exist_ok=True)
     times, camera_rates, imu_rates = _aligned_rates(intervals, stamps_ns, gyro, result)
     from postproc.calibrate.plots import plot_rates
 
     plot_rates(
-        out / IMU_PLOT_NAME,
+        out.imu_plot,
         times_s=times,
         camera_rates=camera_rates,
         imu_rates=imu_rates,
         title=f"camera vs gyro after alignment: shift {1e3 * result.timeshift_cam_imu_s:.2f} ms, "
         f"residual {np.degrees(result.residual_rms_rad):.3f} deg RMS per frame pair",
-        overwrite=overwrite,
     )
     _json(
-        out / IMU_REPORT_NAME,
+        out.imu_report,
         {
             "recording": str(recording_path),
             "camchain": str(camchain_path),
@@ -473,9 +484,9 @@ def run_imu(
                 else "zero: not estimated (a lever arm is not observable from rotations)"
             ),
         },
-        overwrite,
+        False,
     )
-    return write_camchain(output_path, cameras, overwrite=overwrite)
+    write_camchain(out.imu_camchain, cameras)
 
 
 # ------------------------------------------------------------------------------ two rigs
@@ -511,11 +522,7 @@ def run_rig(
     clock: cam1's `T_cam_imu` = cam1_from_imu1 * imu1_from_imu0 (translation zero: not
     observable), and its shift becomes shift1 - offset (t_imu0 = t_cam1 + shift).
     """
-    out = Path(out_dir)
-    output_path = out / RIG_NAME
-    if output_path.exists() and not overwrite:
-        log.info("%s exists: rig calibration already done (overwrite to redo)", output_path)
-        return output_path
+    folder = CalibrationFolder(out_dir)
     if Path(recording0).resolve() == Path(recording1).resolve() and (
         options.imu_topic0 == options.imu_topic1
     ):
@@ -523,6 +530,24 @@ def run_rig(
             f"{recording0}: the same recording and IMU topic {options.imu_topic0!r} for both "
             "rigs (give two recordings or two IMU topics)"
         )
+    stamp = result_stamp(
+        "calibrate rig", options, recording0=recording0, recording1=recording1,
+        camchain0=camchain0, camchain1=camchain1,
+    )  # fmt: skip
+    with rebuild_files(folder, folder.rig_camchain, stamp, overwrite=overwrite) as work:
+        if work is not None:
+            _rig(options, recording0, recording1, camchain0, camchain1, work)
+    return folder.rig_camchain
+
+
+def _rig(
+    options: RigCalibrationOptions,
+    recording0: Path | str,
+    recording1: Path | str,
+    camchain0: Path | str,
+    camchain1: Path | str,
+    out: CalibrationFolder,
+) -> None:
     first = read_camchain(camchain0)[0]
     second = read_camchain(camchain1)[0]
     stamps0, gyro0 = read_gyro(recording0, topic=options.imu_topic0)
@@ -536,9 +561,8 @@ def run_rig(
     second.cam_from_imu = cam1_from_imu0
     # t_imu1 = t_cam1 + shift1 and t_imu1 = t_imu0 + offset, so t_imu0 = t_cam1 + shift1 - offset.
     second.timeshift_cam_imu_s = second.timeshift_cam_imu_s - result.offset_s
-    out.mkdir(parents=True, exist_ok=True)
     _json(
-        out / RIG_REPORT_NAME,
+        out.rig_report,
         {
             "recording0": str(recording0),
             "recording1": str(recording1),
@@ -552,9 +576,9 @@ def run_rig(
             "overlap_s": result.overlap_s,
             "translation": "cam1 translation written as zero: not observable from gyros",
         },
-        overwrite,
+        False,
     )
-    return write_camchain(output_path, [first, second], overwrite=overwrite)
+    write_camchain(out.rig_camchain, [first, second])
 
 
 # ------------------------------------------------------------------------------ pipeline

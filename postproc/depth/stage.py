@@ -60,6 +60,7 @@ from postproc.depth.sync import (
 )
 from shared.clock import NS_PER_S, ClockModel
 from shared.errors import InputError, StageError
+from shared.folders import DepthFolder, rebuild, result_stamp
 from shared.formats.diveprofile import DiveProfile, read_dive_folder, read_profile
 from shared.formats.svin import TrajectoryFormat, read_trajectory
 from shared.formats.tum import write_tum
@@ -68,10 +69,9 @@ from shared.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
-SYNC_NAME = "sync.json"
-WORLD_NAME = "trajectory_world.tum"
-FUSED_NAME = "trajectory_world_fused.tum"
-PLOT_NAME = "depth_sync.png"
+# The names of the outputs, for sync.json (relative to the folder).
+_FOLDER = DepthFolder(".")
+
 # Wall-clock stamps before this (2000-01-01) are not dates: uptime, media time, relative seconds.
 _EARLIEST_DATE_S = 946_684_800.0
 
@@ -176,18 +176,23 @@ def run(
 ) -> Path:
     """Estimate the dive clock and depth relation, write the world trajectory; returns sync.json.
 
-    Skips the work when `out_dir/sync.json` exists and `overwrite` is false.
-    Raises InputError for unreadable inputs, StageError when the dive does not
-    overlap the trajectory or its profile is too flat to give a clock offset.
+    The resume rule of every stage (`shared.folders.rebuild`): a complete result of the
+    same inputs and options is kept; another is refused unless `overwrite`, then rebuilt
+    beside it and swapped in. Raises InputError for unreadable inputs, StageError when
+    the dive does not overlap the trajectory or its profile is too flat to give a clock
+    offset.
     """
-    out = Path(out_dir)
-    sync_path = out / SYNC_NAME
-    if sync_path.exists() and not overwrite:
-        log.info("%s exists: depth stage already done (overwrite to redo)", sync_path)
-        return sync_path
-    trajectory_path = Path(trajectory_path)
-    dive_path = Path(dive_path)
+    folder = DepthFolder(out_dir)
     _check_options(options)
+    stamp = result_stamp("depth", options, trajectory=trajectory_path, dive=dive_path)
+    with rebuild(folder, stamp, overwrite=overwrite) as work:
+        if work is not None:
+            _build(options, Path(trajectory_path), Path(dive_path), work)
+    return folder.sync
+
+
+def _build(options: DepthOptions, trajectory_path: Path, dive_path: Path, out: DepthFolder) -> None:
+    """The depth stage itself, written into the empty folder `out`."""
     trajectory_text = read_trajectory(trajectory_path, format=options.trajectory_format)
     trajectory = trajectory_text.trajectory
     log.debug(
@@ -236,18 +241,17 @@ def run(
             )
 
     world = _world_trajectory(trajectory, sync)
-    out.mkdir(parents=True, exist_ok=True)
-    write_tum(out / WORLD_NAME, world, overwrite=overwrite)
+    write_tum(out.trajectory_world, world)
     fused: Trajectory | None = None
     sample_cam_t = sync.camera_time_s(dive.t_s)
     if options.fuse:
         fused = _fuse(options, traj_t, world, sample_cam_t, dive.depth_m)
-        write_tum(out / FUSED_NAME, fused, overwrite=overwrite)
+        write_tum(out.trajectory_world_fused, fused)
     if options.plot:
         from postproc.depth.plots import plot_depth_sync
 
         plot_depth_sync(
-            out / PLOT_NAME,
+            out.plot,
             traj_t_s=traj_t,
             traj_z_m=traj_z,
             dive_t_s=dive.t_s,
@@ -255,7 +259,6 @@ def run(
             sync=sync,
             fused_z_m=None if fused is None else fused.positions[:, 2],
             title=f"{trajectory_path.name} vs {dive.label} ({options.method})",
-            overwrite=overwrite,
         )
     document = _sync_document(
         options,
@@ -283,8 +286,8 @@ def run(
     )
     if solution is not None and solution.prior_used:
         document["search_ambiguity"] = _ambiguity_document(solution.search_ambiguity, dives)
-    write_text_atomic(sync_path, json.dumps(document, indent=2) + "\n", overwrite=overwrite)
-    return sync_path
+    # sync.json last: the folder's completeness marker.
+    write_text_atomic(out.sync, json.dumps(document, indent=2) + "\n")
 
 
 def _check_options(options: DepthOptions) -> None:
@@ -682,7 +685,7 @@ def _sync_document(
         "clock": {"source": "camera", "target": "dive computer", **asdict(clock)},
         "coarse_candidates": [asdict(c) for c in candidates],
         "options": asdict(options),
-        "outputs": {"world": WORLD_NAME},
+        "outputs": {"world": _FOLDER.trajectory_world.name},
     }
     if scale_free is not None:
         document["depth_scale_free"] = {
@@ -691,9 +694,9 @@ def _sync_document(
         }
     if fused is not None:
         change = fused.positions[:, 2] - world.positions[:, 2]
-        document["outputs"]["fused"] = FUSED_NAME
+        document["outputs"]["fused"] = _FOLDER.trajectory_world_fused.name
         document["fusion_z_change_rms_m"] = float(np.sqrt(np.mean(change * change)))
         document["fusion_z_change_max_m"] = float(np.max(np.abs(change)))
     if options.plot:
-        document["outputs"]["plot"] = PLOT_NAME
+        document["outputs"]["plot"] = _FOLDER.plot.name
     return document

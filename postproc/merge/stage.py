@@ -95,6 +95,7 @@ from postproc.merge.joint import Edge, JointEstimate, solve_joint
 from postproc.merge.places import PairEvidence, PlaceOptions
 from shared.calibration.aprilgrid_detection import DetectionOptions
 from shared.errors import InputError, StageError
+from shared.folders import DepthFolder, MergeFolder, SlamFolder, rebuild, result_stamp
 from shared.fsutil import write_text_atomic
 from shared.trajectory import Trajectory
 
@@ -102,12 +103,6 @@ log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 
-TRANSFORMS_NAME = "transforms.json"
-TARGETS_NAME = "targets.json"
-MERGED_KEYFRAMES_NAME = "keyframes_merged.tum"
-TOP_PLOT_NAME = "merge_top.png"
-SIDE_PLOT_NAME = "merge_side.png"
-DEPTH_WORLD_NAMES = ("trajectory_world_fused.tum", "trajectory_world.tum")
 COVARIANCE_CONVENTION = (
     "6x6 of [dtheta, dt]: R = Exp(dtheta) R_mean, t = t_mean + dt, both in the parent "
     "frame (W); rotation first; radians and metres"
@@ -236,18 +231,30 @@ def run(
     """Merge the sessions in `slam_dirs` through the targets (may be empty with natural
     features) and the structure they share; returns transforms.json.
 
-    Skips the work when `out_dir/transforms.json` exists and `overwrite` is false.
-    Raises InputError for unreadable folders or target files, StageError for
-    invalid options (unknown reference, method or dof, no input).
+    The resume rule of every stage (`shared.folders.rebuild`): a complete result of the
+    same inputs (the SLAM folders with their depth/, the targets) and options is kept;
+    another is refused unless `overwrite`, then rebuilt beside it and swapped in. Raises
+    InputError for unreadable folders or target files, StageError for invalid options
+    (unknown reference, method or dof, no input).
     """
+    folder = MergeFolder(out_dir)
+    _check_options(options, slam_dirs, targets)
+    stamp = result_stamp("merge", options, slam=list(slam_dirs), targets=list(targets))
+    with rebuild(folder, stamp, overwrite=overwrite) as work:
+        if work is not None:
+            _build(options, slam_dirs, targets, work)
+    return folder.transforms
+
+
+def _build(
+    options: MergeOptions,
+    slam_dirs: Sequence[Path | str],
+    targets: Sequence[Path | str],
+    out: MergeFolder,
+) -> None:
+    """The merge itself, written into the empty folder `out`."""
     from shared.calibration.kalibr import read_target_yaml
 
-    out = Path(out_dir)
-    transforms_path = out / TRANSFORMS_NAME
-    if transforms_path.exists() and not overwrite:
-        log.info("%s exists: merge already done (overwrite to redo)", transforms_path)
-        return transforms_path
-    _check_options(options, slam_dirs, targets)
     target_names = [Path(t).stem for t in targets]
     if len(set(target_names)) != len(target_names):
         raise InputError(
@@ -337,7 +344,6 @@ def run(
                 session.name,
             )
 
-    out.mkdir(parents=True, exist_ok=True)
     for session in sessions:
         placement = placements.get(session.name)
         if placement is None:
@@ -345,20 +351,18 @@ def run(
         from shared.formats.tum import write_tum
 
         merged = session.keyframes.transformed(placement.world_from_session)
-        write_tum(out / session.name / MERGED_KEYFRAMES_NAME, merged, overwrite=overwrite)
+        write_tum(out.merged_keyframes(session.name), merged)
     world_targets = _world_targets(estimates, placements)
     targets_doc = _targets_document(
         target_names, targets, sessions, averages, observations, world_targets
     )
-    write_text_atomic(
-        out / TARGETS_NAME, json.dumps(targets_doc, indent=2) + "\n", overwrite=overwrite
-    )
+    write_text_atomic(out.targets, json.dumps(targets_doc, indent=2) + "\n")
     if options.plot:
         from postproc.merge.plots import plot_merge
 
         plot_merge(
-            out / TOP_PLOT_NAME,
-            out / SIDE_PLOT_NAME,
+            out.top_plot,
+            out.side_plot,
             trajectories={
                 s.name: s.keyframes.transformed(placements[s.name].world_from_session).positions
                 for s in sessions
@@ -366,7 +370,6 @@ def run(
             },
             targets={name: pose for name, (pose, _) in world_targets.items()},
             extents={name: grid.extent_m for name, grid in zip(target_names, grids, strict=True)},
-            overwrite=overwrite,
         )
     document = _transforms_document(
         options, sessions, reference, dof, depth_fused, placements, estimates, tilt_prior_deg
@@ -382,8 +385,8 @@ def run(
                     "no chain of shared targets or consistent natural-feature matches to the "
                     "reference (see pairs for the evidence)"
                 )
-    write_text_atomic(transforms_path, json.dumps(document, indent=2) + "\n", overwrite=overwrite)
-    return transforms_path
+    # transforms.json last: the folder's completeness marker.
+    write_text_atomic(out.transforms, json.dumps(document, indent=2) + "\n")
 
 
 def _check_options(
@@ -474,8 +477,9 @@ def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Sessi
     for name, folder in zip(names, folders, strict=True):
         if not folder.is_dir():
             raise InputError(f"{folder}: not a folder (expected a SLAM result folder)")
-        keyframes_path = folder / "keyframes.tum"
-        camchain_path = folder / "calib" / "camchain.yaml"
+        slam = SlamFolder(folder)
+        keyframes_path = slam.keyframes_tum
+        camchain_path = slam.camchain
         for path, what in ((keyframes_path, "keyframe poses"), (camchain_path, "camera model")):
             if not path.is_file():
                 raise InputError(f"{folder}: no {path.relative_to(folder)} ({what} expected)")
@@ -486,9 +490,9 @@ def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Sessi
                 f"{camchain_path}: no camera {options.camera!r} (found: {', '.join(cameras)})"
             )
         images = {}
-        image_dir = folder / "keyframes"
+        image_dir = slam.keyframes
         for stamp in keyframes.stamps_ns.tolist():
-            path = image_dir / f"{stamp}.png"
+            path = slam.keyframe_image(stamp)
             if path.is_file():
                 images[int(stamp)] = path
         if not images:
@@ -527,7 +531,7 @@ def _anchor_ns(folder: Path, keyframes: Trajectory) -> int:
     from shared.formats.tum import read_tum
 
     first = int(keyframes.stamps_ns[0])
-    path = folder / "trajectory.tum"
+    path = SlamFolder(folder).trajectory
     if path.is_file():
         try:
             return min(first, int(read_tum(path).stamps_ns[0]))
@@ -538,11 +542,17 @@ def _anchor_ns(folder: Path, keyframes: Trajectory) -> int:
 
 def find_depth_world(folder: Path) -> Path | None:
     """The depth stage's world trajectory for the SLAM folder `folder`, if any."""
-    for depth_dir in (folder / "depth", folder.parent / "depth"):
-        for name in DEPTH_WORLD_NAMES:
-            if (depth_dir / name).is_file():
-                return depth_dir / name
+    for depth in _depth_folders(folder):
+        for path in (depth.trajectory_world_fused, depth.trajectory_world):
+            if path.is_file():
+                return path
     return None
+
+
+def _depth_folders(folder: Path) -> tuple[DepthFolder, DepthFolder]:
+    """Where a SLAM folder's depth stage is: inside it (the pipeline) or beside it (the
+    command line's `<dive>/slam` and `<dive>/depth`)."""
+    return SlamFolder(folder).depth, DepthFolder(folder.parent / "depth")
 
 
 def _apply_depth(options: MergeOptions, session: Session) -> None:
@@ -551,12 +561,14 @@ def _apply_depth(options: MergeOptions, session: Session) -> None:
     if options.depth_fused is False:
         return
     world_path = find_depth_world(session.folder)
-    body_path = session.folder / "trajectory.tum"
+    body_path = SlamFolder(session.folder).trajectory
     if world_path is None or not body_path.is_file():
         if options.depth_fused:
+            depth = _depth_folders(session.folder)[0]
             raise InputError(
                 f"{session.folder}: depth fusion requested but no depth world trajectory "
-                f"({' or '.join(DEPTH_WORLD_NAMES)} in depth/ or ../depth/) and trajectory.tum"
+                f"({depth.trajectory_world_fused.name} or {depth.trajectory_world.name} in "
+                f"depth/ or ../depth/) and {body_path.name}"
             )
         return
     world = read_tum(world_path)

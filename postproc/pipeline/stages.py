@@ -277,13 +277,12 @@ def run_merge(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[
 
 
 def run_sfm(options: Any, inputs: dict[str, Any], out: Path, *, context: dict[str, Any]) -> Path:
-    """The merge folder (when there is one) and SLAM folders -> the SfM folder `out`."""
+    """SLAM folders and the merge folder (when there is one) -> the SfM folder `out`."""
     from postproc.sfm.stage import run
 
-    folders = ([Path(inputs["merge"])] if inputs.get("merge") else []) + [
-        Path(p) for p in inputs["slam"]
-    ]
-    run(options, folders, out, overwrite=True, map_fn=stage_map(context))
+    slam = [SlamFolder(p).path for p in inputs["slam"]]
+    merge = MergeFolder(inputs["merge"]).path if inputs.get("merge") else None
+    run(options, slam, out, merge=merge, overwrite=True, map_fn=stage_map(context))
     return out
 
 

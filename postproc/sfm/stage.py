@@ -21,8 +21,11 @@ budget, matches the pairs chosen from the priors, refines (see
 - while a run with a `map_fn` works: `features_chunks/` and `matches_chunks/`, one
   `.npz` per worker task, imported into `database.db` and then removed.
 
-An interrupted run is resumed (features and matches already in the database are
-kept); a finished one (stats.json present) is refused unless `overwrite`.
+The resume rule of every stage (`shared.folders.rebuild`): a finished run of the same
+inputs and options is kept, another is refused unless `overwrite`; the run works under
+a temporary name beside the output folder and is swapped in when complete. An
+interrupted run is resumed there by the next run with the same inputs and options
+(features and matches already in the database are kept).
 """
 
 from __future__ import annotations
@@ -52,7 +55,8 @@ from postproc.sfm.inputs import SessionInput, read_inputs
 from postproc.sfm.pairs import PairOptions, select_pairs
 from postproc.sfm.refine import RefineOptions, RefineResult, refine
 from shared.calibration.cameras import CameraModel
-from shared.errors import InputError, OutputExistsError, StageError
+from shared.errors import InputError, StageError
+from shared.folders import MergeFolder, SfmFolder, rebuild, result_stamp
 from shared.fsutil import atomic_path, write_text_atomic
 from shared.geometry import invert_pose
 from shared.progress import MapFn
@@ -62,7 +66,6 @@ FloatArray = npt.NDArray[np.float64]
 
 log = logging.getLogger(__name__)
 
-_OUR_FILES = ("database.db", "stats.json", "sparse", "images", "pairs.txt", "sessions")
 # Scratch folders of the worker tasks (removed once imported into the database).
 _FEATURES_DIR = "features_chunks"
 _MATCHES_DIR = "matches_chunks"
@@ -188,22 +191,6 @@ def _link_images(keyframes: KeyframeSet, image_dir: Path, *, copy: bool) -> None
             shutil.copyfile(source, target)
 
 
-def _prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
-    if out_dir.exists() and any(out_dir.iterdir()):
-        ours = any((out_dir / name).exists() for name in _OUR_FILES)
-        if not ours:
-            raise OutputExistsError(
-                f"{out_dir}: exists and holds other files (refusing to write an SfM run there)"
-            )
-        if (out_dir / "stats.json").exists() and not overwrite:
-            raise OutputExistsError(
-                f"{out_dir}: finished SfM run already there (refusing to overwrite)"
-            )
-        if overwrite:
-            shutil.rmtree(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-
-
 def _fill_missing(
     keyframes: KeyframeSet, refined: dict[str, FloatArray], prior_world: FloatArray
 ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
@@ -227,7 +214,7 @@ def _fill_missing(
 
 
 def _write_outputs(
-    out_dir: Path,
+    out_dir: SfmFolder,
     sessions: list[SessionInput],
     keyframes: KeyframeSet,
     result: RefineResult,
@@ -253,16 +240,15 @@ def _write_outputs(
     for k, session in enumerate(sessions):
         members = np.flatnonzero(keyframes.session == k)
         T = world_from_session.get(k)
-        folder = out_dir / "sessions" / session.name
         stamps = keyframes.stamps_ns[members]
         if T is not None:
             world = Trajectory(stamps, refined[members])
-            write_tum(folder / "keyframes_world.tum", world, overwrite=True)
+            write_tum(out_dir.session_keyframes_world(session.name), world, overwrite=True)
             # The input's frame: W for a merged session, S for a SLAM folder.
             local = world if session.source == "merge" else world.transformed(invert_pose(T))
-            write_tum(folder / "keyframes.tum", local, overwrite=True)
+            write_tum(out_dir.session_keyframes(session.name), local, overwrite=True)
             if len(sessions) == 1:
-                write_tum(out_dir / "keyframes.tum", local, overwrite=True)
+                write_tum(out_dir.keyframes_tum, local, overwrite=True)
             moves = np.linalg.norm(refined[members, :3, 3] - prior_world[members, :3, 3], axis=1)
         else:
             moves = np.zeros(0)
@@ -281,9 +267,7 @@ def _write_outputs(
             "prior_to_refined_rms_m": float(np.sqrt(np.mean(moves**2))) if moves.size else None,
             "prior_to_refined_max_m": float(np.max(moves)) if moves.size else None,
         }
-    write_text_atomic(
-        out_dir / "transforms.json", json.dumps(transforms, indent=2) + "\n", overwrite=True
-    )
+    write_text_atomic(out_dir.transforms, json.dumps(transforms, indent=2) + "\n", overwrite=True)
     return session_stats
 
 
@@ -292,10 +276,14 @@ def run(
     input_dirs: list[Path] | list[str],
     out_dir: Path | str,
     *,
+    merge: Path | str | None = None,
     overwrite: bool = False,
     map_fn: MapFn | None = None,
 ) -> Path:
     """Run the SfM stage (see the module docstring); returns the model folder `sparse/0`.
+
+    input_dirs: SLAM result folders (a merge folder among them is recognised too, as on
+    the command line); merge: the merge folder placing them in one world frame.
 
     map_fn: spreads the per-image work over workers: `map_fn(function, items)` must
     return `[function(item) for item in items]` in order (a process pool's or a Dask
@@ -307,22 +295,40 @@ def run(
     runs in this process.
 
     Raises InputError for unreadable or inconsistent inputs, StageError when no model
-    can be built, OutputExistsError for a finished run without `overwrite`.
+    can be built, OutputExistsError for another result in the way without `overwrite`.
     """
-    timings: dict[str, float] = {}
     start_all = time.perf_counter()
-    out = Path(out_dir)
-    start = time.perf_counter()
-    sessions = read_inputs([Path(d) for d in input_dirs])
+    folder = SfmFolder(out_dir)
+    dirs = ([MergeFolder(merge).path] if merge is not None else []) + [Path(d) for d in input_dirs]
+    sessions = read_inputs(dirs)
     keyframes, cameras = build_keyframes(sessions, options)
     if len(keyframes) < 3:
         raise InputError(
             f"{len(keyframes)} keyframes in all inputs (expected at least 3 to build a model)"
         )
-    timings["read_inputs_s"] = time.perf_counter() - start
-    _prepare_out_dir(out, overwrite)
-    image_dir = out / "images"
-    database_path = out / "database.db"
+    timings = {"read_inputs_s": time.perf_counter() - start_all}
+    # A depth stage beside a SLAM folder (the command line's layout) is an input too.
+    beside = [d.parent / "depth" for d in dirs if (d.parent / "depth").is_dir()]
+    stamp = result_stamp("sfm", options, inputs=dirs, depth_beside=beside)
+    with rebuild(folder, stamp, overwrite=overwrite, resumable=True) as work:
+        if work is not None:
+            _build(options, sessions, keyframes, cameras, work, map_fn, timings, start_all)
+    return folder.model
+
+
+def _build(
+    options: SfmOptions,
+    sessions: list[SessionInput],
+    keyframes: KeyframeSet,
+    cameras: list[CameraModel],
+    out: SfmFolder,
+    map_fn: MapFn | None,
+    timings: dict[str, float],
+    start_all: float,
+) -> None:
+    """The SfM run itself in `out` (resumes what an interrupted run left there)."""
+    image_dir = out.images
+    database_path = out.database
     _link_images(keyframes, image_dir, copy=options.copy_images)
     if not database_path.exists():
         with atomic_path(database_path) as tmp:
@@ -342,7 +348,7 @@ def run(
             keyframes.names,
             options.features,
             longest_side_px=longest,
-            features_dir=out / _FEATURES_DIR,
+            features_dir=out.path / _FEATURES_DIR,
             map_fn=map_fn,
             chunk_size=options.chunk_images,
         )
@@ -358,7 +364,7 @@ def run(
     )
     names = keyframes.names
     name_pairs = [(names[i], names[j]) for i, j in pair_set.pairs.tolist()]
-    pairs_path = write_pairs_file(out / "pairs.txt", name_pairs)
+    pairs_path = write_pairs_file(out.pairs, name_pairs)
     timings["pairs_s"] = time.perf_counter() - start
     log.info("matching %d pairs %s", len(pair_set), pair_set.counts())
     start = time.perf_counter()
@@ -369,7 +375,7 @@ def run(
             database_path,
             name_pairs,
             options.features,
-            matches_dir=out / _MATCHES_DIR,
+            matches_dir=out.path / _MATCHES_DIR,
             map_fn=map_fn,
             chunk_size=options.chunk_pairs,
         )
@@ -382,16 +388,15 @@ def run(
         )
 
     start = time.perf_counter()
-    result = refine(database_path, image_dir, out / "mapper", keyframes, options.refine)
+    result = refine(database_path, image_dir, out.path / "mapper", keyframes, options.refine)
     timings["refine_s"] = time.perf_counter() - start
     timings.update(result.seconds)
     reconstruction = result.reconstruction
     reconstruction.extract_colors_for_all_images(image_dir)
-    model_dir = out / "sparse" / "0"
-    with atomic_path(model_dir, overwrite=True) as tmp:
+    with atomic_path(out.model, overwrite=True) as tmp:
         tmp.mkdir(parents=True)
         reconstruction.write_binary(tmp)
-    shutil.rmtree(out / "mapper", ignore_errors=True)
+    shutil.rmtree(out.path / "mapper", ignore_errors=True)
     session_stats = _write_outputs(out, sessions, keyframes, result)
     timings["total_s"] = time.perf_counter() - start_all
     stats = {
@@ -409,5 +414,5 @@ def run(
         "seconds": timings,
         "options": asdict(options),
     }
-    write_text_atomic(out / "stats.json", json.dumps(stats, indent=2) + "\n", overwrite=True)
-    return model_dir
+    # stats.json last: the folder's completeness marker.
+    write_text_atomic(out.stats, json.dumps(stats, indent=2) + "\n", overwrite=True)

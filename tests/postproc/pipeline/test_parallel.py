@@ -93,10 +93,10 @@ def test_adapters_pass_the_map_function(
         return out
 
     def sfm_with_map(
-        options: Any, input_dirs: list[Path], out: Path, *, overwrite: bool = False,
-        map_fn: Any = None,
+        options: Any, input_dirs: list[Path], out: Path, *, merge: Path | None = None,
+        overwrite: bool = False, map_fn: Any = None,
     ) -> Path:  # fmt: skip
-        calls["sfm"] = {"overwrite": overwrite, "map_fn": map_fn}
+        calls["sfm"] = {"overwrite": overwrite, "map_fn": map_fn, "merge": merge}
         return out
 
     monkeypatch.setattr(postproc.dense.stage, "run", dense_run)
@@ -106,4 +106,7 @@ def test_adapters_pass_the_map_function(
     assert calls["dense"]["map_fn"](square, [1, 2, 3]) == [1, 4, 9]
     monkeypatch.setattr(postproc.sfm.stage, "run", sfm_with_map)
     stages.run_sfm(None, {"slam": [tmp_path]}, tmp_path / "s", context={"parallel": None})
-    assert calls["sfm"]["map_fn"] is serial_map
+    assert calls["sfm"]["map_fn"] is serial_map and calls["sfm"]["merge"] is None
+    inputs = {"slam": [tmp_path], "merge": tmp_path / "merge"}
+    stages.run_sfm(None, inputs, tmp_path / "s", context={"parallel": None})
+    assert calls["sfm"]["merge"] == tmp_path / "merge"
