@@ -36,10 +36,11 @@ from shared.archive import (
     video_topic,
 )
 from shared.archive.messages import ArchiveMessage
+from shared.archive.writer import Engine
 from shared.errors import InputError
 
 T0 = 1_700_000_000_555_000_111
-ENGINES = ["mcap", "wreckmap"]
+ENGINES: list[Engine] = ["mcap", "wreckmap"]
 
 
 def session(seed: int, imu_count: int = 300) -> list[tuple[str, ArchiveMessage]]:
@@ -111,7 +112,7 @@ def session(seed: int, imu_count: int = 300) -> list[tuple[str, ArchiveMessage]]
 
 
 def write(
-    path: Path, messages: list[tuple[str, ArchiveMessage]], engine: str, **options: Any
+    path: Path, messages: list[tuple[str, ArchiveMessage]], engine: Engine, **options: Any
 ) -> None:
     with ArchiveWriter(path, engine=engine, metadata={"site": "wreck"}, **options) as writer:
         writer.add_metadata("clocks", {"imu": "device"})
@@ -138,7 +139,7 @@ def chunk_records(path: Path) -> list[list[Any]]:
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
 def test_each_engine_round_trips_through_both_readers(
-    tmp_path: Path, engine: str, compression: str
+    tmp_path: Path, engine: Engine, compression: str
 ) -> None:
     messages = session(1)
     path = tmp_path / "rec.mcap"
@@ -197,7 +198,7 @@ def test_both_engines_store_the_same_records(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("engine", ENGINES)
-def test_every_chunk_defines_the_channels_it_uses(tmp_path: Path, engine: str) -> None:
+def test_every_chunk_defines_the_channels_it_uses(tmp_path: Path, engine: Engine) -> None:
     path = tmp_path / "rec.mcap"
     write(path, session(3), engine, chunk_size=2000)
     chunks = chunk_records(path)
@@ -224,14 +225,14 @@ def test_every_chunk_defines_the_channels_it_uses(tmp_path: Path, engine: str) -
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_a_crashed_recording_with_its_first_chunk_lost_keeps_the_rest(
-    tmp_path: Path, engine: str
+    tmp_path: Path, engine: Engine
 ) -> None:
     """No summary (crash) and the chunk that first defined the channels is damaged: the
     later chunks still decode, because each one repeats its schemas and channels."""
     messages = session(4)
     path = tmp_path / "recording.mcap"
     crashed = tmp_path / "crashed.mcap.part"
-    with ArchiveWriter(path, engine=engine, chunk_size=3000) as writer:  # type: ignore[arg-type]
+    with ArchiveWriter(path, engine=engine, chunk_size=3000) as writer:
         for topic, message in messages:
             writer.write(topic, message)
         writer.flush(fsync=True)
@@ -257,10 +258,10 @@ def test_a_crashed_recording_with_its_first_chunk_lost_keeps_the_rest(
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("bad", [-1, 2**64, "12", 1.5])
 def test_a_bad_log_time_is_refused_before_anything_is_written(
-    tmp_path: Path, engine: str, bad: object
+    tmp_path: Path, engine: Engine, bad: object
 ) -> None:
     path = tmp_path / "rec.mcap"
-    with ArchiveWriter(path, engine=engine) as writer:  # type: ignore[arg-type]
+    with ArchiveWriter(path, engine=engine) as writer:
         writer.write(SESSION_TOPIC, SessionInfo(stamp_ns=T0, yaml_text="a"))
         with pytest.raises(InputError, match=r"log time .* ns is not a uint64"):
             writer.write(SESSION_TOPIC, SessionInfo(stamp_ns=T0, yaml_text="b"), log_time_ns=bad)  # type: ignore[arg-type]
@@ -280,18 +281,17 @@ def test_a_bad_log_time_is_refused_before_anything_is_written(
 
 def test_numpy_integer_log_times_are_accepted(tmp_path: Path) -> None:
     path = tmp_path / "rec.mcap"
+    log_time: Any = np.int64(T0 + 5)  # what a caller holding numpy stamps passes
     with ArchiveWriter(path) as writer:
-        writer.write(
-            SESSION_TOPIC, SessionInfo(stamp_ns=T0, yaml_text="a"), log_time_ns=np.int64(T0 + 5)
-        )  # type: ignore[arg-type]
+        writer.write(SESSION_TOPIC, SessionInfo(stamp_ns=T0, yaml_text="a"), log_time_ns=log_time)
     with ArchiveReader(path) as reader:
         assert [lt for _, lt, _ in reader.messages()] == [T0 + 5]
 
 
 @pytest.mark.parametrize("engine", ENGINES)
-def test_bytes_written_follows_the_file(tmp_path: Path, engine: str) -> None:
+def test_bytes_written_follows_the_file(tmp_path: Path, engine: Engine) -> None:
     path = tmp_path / "rec.mcap"
-    writer = ArchiveWriter(path, engine=engine, chunk_size=2000)  # type: ignore[arg-type]
+    writer = ArchiveWriter(path, engine=engine, chunk_size=2000)
     sizes = []
     for topic, message in session(7, imu_count=100):
         writer.write(topic, message)
@@ -335,7 +335,8 @@ def ros2_fields(message: ArchiveMessage) -> dict[str, Any]:
     elif isinstance(message, RecorderEvent):
         fields.update(kind=message.kind, yaml_text=message.yaml_text)
     else:
-        fields["yaml_text"] = message.yaml_text  # type: ignore[attr-defined]
+        assert isinstance(message, SessionInfo)
+        fields["yaml_text"] = message.yaml_text
     return fields
 
 
@@ -359,7 +360,7 @@ def decoded_fields(message: Any, like: dict[str, Any]) -> dict[str, Any]:
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_mcap_ros2_support_decodes_our_archive_from_its_own_schemas(
-    tmp_path: Path, engine: str
+    tmp_path: Path, engine: Engine
 ) -> None:
     """An independent CDR decoder, built from the .msg text stored in the file."""
     messages = session(5, imu_count=60)

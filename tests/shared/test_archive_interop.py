@@ -31,6 +31,7 @@ from shared.archive import (
     write_rosbag2_metadata,
 )
 from shared.archive.messages import ArchiveMessage
+from shared.archive.writer import Engine
 from shared.errors import InputError, OutputExistsError
 
 T0 = 1_700_000_000_987_654_321
@@ -98,12 +99,9 @@ def session_messages(rng: np.random.Generator, t0: int = T0) -> list[tuple[str, 
     return out
 
 
-def write(path: Path, messages: list[tuple[str, ArchiveMessage]], engine: str = "mcap") -> None:
+def write(path: Path, messages: list[tuple[str, ArchiveMessage]], engine: Engine = "mcap") -> None:
     with ArchiveWriter(
-        path,
-        chunk_size=4000,
-        metadata={"session_id": "abc"},
-        engine=engine,  # type: ignore[arg-type]
+        path, chunk_size=4000, metadata={"session_id": "abc"}, engine=engine
     ) as writer:
         for topic, message in messages:
             writer.write(topic, message)
@@ -114,7 +112,7 @@ def f64(value: float) -> bytes:
 
 
 @pytest.mark.parametrize("engine", ["mcap", "wreckmap"])
-def test_mcap_library_reads_our_archive(tmp_path: Path, engine: str) -> None:
+def test_mcap_library_reads_our_archive(tmp_path: Path, engine: Engine) -> None:
     messages = session_messages(np.random.default_rng(1))
     path = tmp_path / "rec.mcap"
     write(path, messages, engine)
@@ -196,7 +194,7 @@ def read_with_rosbags(paths: list[Path]) -> list[tuple[str, int, Any]]:
 
 
 @pytest.mark.parametrize("engine", ["mcap", "wreckmap"])
-def test_rosbags_reads_bare_mcap(tmp_path: Path, engine: str) -> None:
+def test_rosbags_reads_bare_mcap(tmp_path: Path, engine: Engine) -> None:
     messages = session_messages(np.random.default_rng(2))
     path = tmp_path / "rec.mcap"
     write(path, messages, engine)
