@@ -1,21 +1,22 @@
 """Archive writer/reader throughput: IMU messages and 200 kB video packets, both writers.
 
 Run: .venv/bin/python bench/bench_archive.py [--imu-messages N] [--video-packets N]
+     [--recorder-seconds S] [--repeats N]
 
 Writes the same streams with both record writers of `ArchiveWriter` in one
 run (`engine="mcap"`, the mcap package, and `engine="wreckmap"`, our own),
 interleaved so that both see the same machine load, and prints messages/s and
 MB/s (MB = 1e6 bytes of CDR payload) for each, then the ratio between them.
-Reads the mcap-written files back with our reader (`ArchiveReader`) and with
-the mcap package's reader (`mcap.reader.make_reader`, log-time order, chunk
-CRCs checked as ours always does): IMU
-through `read_imu` (both decode with `cdr.decode_imu_batch`), video as raw
-CDR records. The load
-average is printed at the start and the end: on a shared machine the absolute
-figures move with it, the ratios much less. The recorder needs >= 20k IMU
-msgs/s and 30 fps video; the last figures are the CPU time each writer spends
-on the recorder's own stream (bench_record.py's rig, at its writer settings)
-as a share of one core, the writer's part of the recorder's 10 % budget.
+Decodes IMU CDR with our codec and with mcap-ros2-support's. Reads the
+mcap-written files back with our reader (`ArchiveReader`) and with the mcap
+package's reader (`mcap.reader.make_reader`, log-time order, chunk CRCs
+checked as ours always does): IMU through `read_imu` (both decode with
+`cdr.decode_imu_batch`), video as raw CDR records. The load average is
+printed at the start and the end: on a shared machine the absolute figures
+move with it, the ratios much less. The recorder needs >= 20k IMU msgs/s and
+30 fps video; the last figures are the CPU time each writer spends on the
+recorder's own stream (bench_record.py's rig, at its writer settings) as a
+share of one core, the writer's part of the recorder's 10 % budget.
 """
 
 from __future__ import annotations
@@ -162,6 +163,30 @@ def bench_imu(folder: Path, count: int, repeats: int) -> dict[tuple[str, str], f
     return rates
 
 
+def bench_cdr_decode(folder: Path, repeats: int) -> dict[str, float]:
+    """Decoding IMU CDR one message at a time: our codec against mcap-ros2-support's,
+    which builds its decoder from the schema stored in the file (a dev dependency)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from shared.archive.cdr import decode_imu
+
+    path = folder / "imu_zstd_mcap.mcap"
+    with path.open("rb") as stream:
+        items = list(make_reader(stream).iter_messages(topics=[imu_topic(0)]))
+    schema = items[0][0]
+    payloads = [message.data for _, _, message in items[:50_000]]
+    theirs = DecoderFactory().decoder_for("cdr", schema)
+    assert theirs is not None
+    rates = {}
+    for name, decode in (("ours", decode_imu), ("mcap_ros2", theirs)):
+        elapsed = timed(partial(lambda d: [d(p) for p in payloads], decode), repeats)
+        rates[name] = len(payloads) / elapsed
+        print(f"IMU CDR decode      {name:9}: {rates[name]:10,.0f} msg/s")
+    print(f"IMU CDR decode      ours / mcap_ros2 = {rates['ours'] / rates['mcap_ros2']:.2f}")
+    return rates
+
+
 def bench_video(folder: Path, count: int, repeats: int) -> dict[tuple[str, str], float]:
     messages = video_messages(count)
     topic = video_topic(0)
@@ -275,6 +300,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         imu = bench_imu(folder, args.imu_messages, args.repeats)
+        bench_cdr_decode(folder, args.repeats)
         video = bench_video(folder, args.video_packets, args.repeats)
         shares = bench_recorder_share(folder, args.recorder_seconds, args.repeats)
     print(f"end:   {load_average()}")

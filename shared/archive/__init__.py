@@ -7,7 +7,7 @@ schemas, standard message types where one exists, so Foxglove, rosbag2 and
 The records are written by the `mcap` package (`writer.py`; our own record
 writer remains as `engine="wreckmap"` where its lower cost matters), the
 summary is parsed by it (`reader.py`); chunk loading, salvage of crashed
-recordings and the CDR codec (`cdr.py`, 6x faster than mcap-ros2-support's
+recordings and the CDR codec (`cdr.py`, 4-6x faster than mcap-ros2-support's
 generic decoder) stay ours, each module says why.
 """
 

@@ -12,8 +12,8 @@ hand-written struct layouts: this is several times faster than a generic
 serializer, which matters for 200 Hz-1 kHz IMU streams written in Python.
 mcap-ros2-support 0.6.0 (the mcap package's ROS 2 codec) decodes our files
 from the schemas stored in them, and the archive tests use it as an
-independent check, but it decoded IMU messages at about 10k msg/s against
-69k here (same run), so the codec stays ours.
+independent check, but it decodes IMU messages 4-6x slower than this codec
+(bench/bench_archive.py, "IMU CDR decode"), so the codec stays ours.
 The schema texts follow the `ros2msg` encoding of rosbag2: the top-level
 definition, then every dependency once, each preceded by a line of 80 `=`
 and a line `MSG: pkg/Type`.
