@@ -43,10 +43,10 @@ import numpy as np
 from postproc.dense.colmap_io import read_pinhole_views, write_known_pose_model
 from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, visibility
 from postproc.dense.fusion import FusionOptions
-from postproc.dense.ply import read_ply
 from postproc.dense.stage import DenseOptions, run
 from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
 from shared.calibration.cameras import PinholeRadtan
+from shared.formats.ply import read_ply
 from sim.mesh import scene_mesh
 from sim.render import Renderer
 from sim.survey import SurveyOptions, SurveySimulator

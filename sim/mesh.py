@@ -14,10 +14,13 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from shared.fsutil import atomic_path
+from shared.formats.ply import PlyData
+from shared.formats.ply import ply_bytes as encode_ply
+from shared.formats.ply import write_ply as write_ply_file
 from sim.scene import FACE_UV_AXES, WreckScene, face_hidden
 
 FloatArray = npt.NDArray[np.float64]
+MESH_PLY_COMMENT = "wreckmap simulated wreck, world frame W (z up, z=0 at the sea surface), metres"
 
 
 def _grid(
@@ -144,31 +147,15 @@ def scene_mesh(scene: WreckScene, *, cell_m: float = 0.25) -> TruthMesh:
     )
 
 
+def _ply(mesh: TruthMesh) -> PlyData:
+    return PlyData(vertices=mesh.vertices, colors=mesh.colors, faces=mesh.triangles)
+
+
 def ply_bytes(mesh: TruthMesh) -> bytes:
     """A binary little-endian PLY: float32 x, y, z, uchar red, green, blue; int32 faces."""
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    c = np.asarray(mesh.colors, dtype=np.uint8)
-    f = np.asarray(mesh.triangles, dtype=np.int32)
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment wreckmap simulated wreck, world frame W "
-        "(z up, z=0 at the sea surface), metres\n"
-        f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    vertex_dtype = np.dtype([("xyz", "<f4", (3,)), ("rgb", "u1", (3,))])
-    vrec = np.empty(len(v), dtype=vertex_dtype)
-    vrec["xyz"] = v
-    vrec["rgb"] = c
-    face_dtype = np.dtype([("n", "u1"), ("idx", "<i4", (3,))])
-    frec = np.empty(len(f), dtype=face_dtype)
-    frec["n"] = 3
-    frec["idx"] = f
-    return header.encode("ascii") + vrec.tobytes() + frec.tobytes()
+    return encode_ply(_ply(mesh), comments=[MESH_PLY_COMMENT])
 
 
 def write_ply(path: Path | str, mesh: TruthMesh, *, overwrite: bool = False) -> Path:
     """Write a coloured triangle mesh as binary PLY (atomic; refuses to overwrite unless asked)."""
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        tmp.write_bytes(ply_bytes(mesh))
-    return Path(path)
+    return write_ply_file(path, _ply(mesh), comments=[MESH_PLY_COMMENT], overwrite=overwrite)

@@ -158,7 +158,7 @@ def correct_fused(
     """Correct the colours of `fused_ply` (using its `.vis` and the workspace's `views`, in
     registered-image order) into `out_ply`; returns the water model used."""
     from postproc.dense.colmap_io import read_fusion_visibility
-    from postproc.dense.ply import PlyData, read_ply, write_ply
+    from shared.formats.ply import PlyData, read_ply, write_ply
 
     cloud = read_ply(fused_ply)
     if cloud.colors is None:

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from postproc.dense.ply import PlyData, read_ply, write_ply
 from shared.errors import InputError, OutputExistsError, StageError
+from shared.formats.ply import PlyData, read_ply, write_ply
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -66,9 +66,9 @@ def write_nerfstudio(
 
     import pycolmap
 
-    from postproc.dense.ply import PlyData, write_ply
     from postproc.export.cameras import read_cameras
     from postproc.export.images import link_or_copy_images
+    from shared.formats.ply import PlyData, write_ply
     from shared.fsutil import atomic_path
 
     cameras = read_cameras(model_dir)

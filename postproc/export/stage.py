@@ -67,8 +67,8 @@ class ExportOptions:
 def export_mesh(
     options: ExportOptions, run: RunFolder, out: Path, suffix: str, overwrite: bool
 ) -> Path:
-    from postproc.dense.ply import read_ply
     from postproc.export.gltf import write_mesh_gltf
+    from shared.formats.ply import read_ply
 
     path = run.need_mesh()
     mesh = read_ply(path)
@@ -81,8 +81,8 @@ def export_mesh(
 def export_points(
     options: ExportOptions, run: RunFolder, out: Path, suffix: str, overwrite: bool
 ) -> Path:
-    from postproc.dense.ply import read_ply
     from postproc.export.las import write_points_las
+    from shared.formats.ply import read_ply
 
     cloud = read_ply(run.need_fused())
     return write_points_las(out / f"points{suffix}", cloud.vertices, cloud.colors,
@@ -143,8 +143,8 @@ def write_ortho(
 ) -> Path:
     """Orthophoto and DEM of the mesh into `out_dir` (see `postproc.export.ortho`);
     returns `out_dir/ortho.tif`."""
-    from postproc.dense.ply import read_ply
     from postproc.export import ortho
+    from shared.formats.ply import read_ply
     from shared.fsutil import atomic_path
 
     mesh = read_ply(mesh_ply)

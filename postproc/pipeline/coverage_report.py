@@ -73,8 +73,8 @@ class RunCoverage:
 
 
 def _surface(out: Path) -> tuple[SurfaceSamples, tuple[Any, Any] | None, str] | None:
-    from postproc.dense.ply import read_ply
     from postproc.pipeline.decimate import decimate_mesh, subsample_points
+    from shared.formats.ply import read_ply
 
     mesh_path, fused_path = out / "dense" / "mesh.ply", out / "dense" / "fused.ply"
     if mesh_path.is_file():

@@ -308,7 +308,7 @@ def evaluate_mesh(
         seen_counts,
         undistorted_canvas,
     )
-    from postproc.dense.ply import read_ply
+    from shared.formats.ply import read_ply
 
     options = options or CompletenessOptions()
     recon = read_ply(recon_path).vertices

@@ -159,7 +159,7 @@ def render_mesh_png(path: Path) -> bytes | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from postproc.dense.ply import read_ply
+    from shared.formats.ply import read_ply
 
     try:
         ply = read_ply(path)

@@ -168,7 +168,7 @@ def load_scene(
     """The viewer's scene from a run folder, decimated to the budgets; with `coverage`
     (a `coverage_report.RunCoverage`) each mesh vertex also gets the score of the
     nearest coverage sample (all sessions), for the "colour by coverage" toggle."""
-    from postproc.dense.ply import read_ply
+    from shared.formats.ply import read_ply
 
     scene = ViewerScene()
     mesh_path, fused_path = out / "dense" / "mesh.ply", out / "dense" / "fused.ply"

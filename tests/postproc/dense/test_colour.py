@@ -17,8 +17,8 @@ from postproc.dense.colour import (
     estimate_water,
     point_ranges_m,
 )
-from postproc.dense.ply import PlyData, read_ply, write_ply
 from shared.errors import StageError
+from shared.formats.ply import PlyData, read_ply, write_ply
 
 BETA = (0.40, 0.13, 0.11)
 B = (0.02, 0.13, 0.16)

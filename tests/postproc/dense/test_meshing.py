@@ -1,4 +1,4 @@
-"""Octree depth from the scene, Poisson meshing of a cloud, trimming, PLY round trips."""
+"""Octree depth from the scene, Poisson meshing of a cloud, trimming."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from postproc.dense.meshing import (
     scene_extent_m,
     trim_mesh,
 )
-from postproc.dense.ply import PlyData, read_ply, write_ply
 from shared.errors import InputError, OutputExistsError
+from shared.formats.ply import PlyData, read_ply, write_ply
 
 
 @pytest.mark.parametrize(
@@ -56,34 +56,6 @@ def test_spacing_and_extent() -> None:
     assert scene_extent_m(cloud.vertices) == pytest.approx(2.0, abs=0.05)
     with pytest.raises(ValueError, match="two points"):
         point_spacing_m(np.zeros((1, 3)))
-
-
-def test_ply_round_trip(tmp_path: Path) -> None:
-    rng = np.random.default_rng(2)
-    ply = PlyData(
-        vertices=rng.normal(size=(5, 3)),
-        normals=rng.normal(size=(5, 3)),
-        colors=rng.integers(0, 255, (5, 3)).astype(np.uint8),
-        faces=np.array([[0, 1, 2], [2, 3, 4]]),
-    )
-    back = read_ply(write_ply(tmp_path / "a.ply", ply))
-    np.testing.assert_allclose(back.vertices, ply.vertices, rtol=1e-6)
-    np.testing.assert_allclose(back.normals, ply.normals, rtol=1e-6)
-    np.testing.assert_array_equal(back.colors, ply.colors)
-    np.testing.assert_array_equal(back.faces, ply.faces)
-    with pytest.raises(OutputExistsError):
-        write_ply(tmp_path / "a.ply", ply)
-
-
-def test_bad_ply_files(tmp_path: Path) -> None:
-    with pytest.raises(InputError, match="no such PLY"):
-        read_ply(tmp_path / "none.ply")
-    (tmp_path / "t.ply").write_bytes(b"hello")
-    with pytest.raises(InputError, match="not a PLY"):
-        read_ply(tmp_path / "t.ply")
-    (tmp_path / "a.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
-    with pytest.raises(InputError, match="ascii"):
-        read_ply(tmp_path / "a.ply")
 
 
 def test_trim_keeps_supported_triangles() -> None:

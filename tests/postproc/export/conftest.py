@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from postproc.dense.colmap_io import write_known_pose_model
-from postproc.dense.ply import PlyData, write_ply
+from shared.formats.ply import PlyData, write_ply
 
 WIDTH, HEIGHT = 256, 192
 PARAMS = [150.0, 152.0, 129.0, 95.0, -0.12, 0.02, 2e-4, -1e-4]  # OPENCV fx fy cx cy k1 k2 p1 p2

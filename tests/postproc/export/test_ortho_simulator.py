@@ -11,8 +11,8 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from postproc.dense.ply import PlyData, write_ply
 from postproc.export.stage import OrthoOptions, write_ortho
+from shared.formats.ply import PlyData, write_ply
 from sim.mesh import scene_mesh
 from sim.scene import WreckScene, build_wreck_scene
 

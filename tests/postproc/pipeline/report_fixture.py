@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from postproc.dense.ply import PlyData, write_ply
+from shared.formats.ply import PlyData, write_ply
 from shared.formats.tum import write_tum
 from shared.geometry import invert_pose, make_pose, so3_exp
 from shared.trajectory import Trajectory

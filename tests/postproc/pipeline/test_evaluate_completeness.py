@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from postproc.dense.ply import PlyData, write_ply
 from postproc.pipeline.evaluate import CompletenessOptions, evaluate_mesh, truth_camera
 from shared.calibration.cameras import PinholeRadtan
 from shared.errors import InputError
+from shared.formats.ply import PlyData, write_ply
 from shared.geometry import make_pose, so3_exp
 
 # A small camera with some barrel distortion (the canvas then differs from the image).

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from postproc.dense.ply import write_ply
 from postproc.pipeline.evaluate import evaluate_project, read_truth
 from postproc.pipeline.project import load_project
 from postproc.pipeline.report import render_mesh_png, write_report
 from shared.errors import InputError
+from shared.formats.ply import write_ply
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from report_fixture import build, cube

@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 import pytest
 
-from postproc.dense.ply import PlyData, write_ply
 from postproc.pipeline.browser import HeadlessChromium
 from postproc.pipeline.decimate import cluster_vertices, decimate_mesh, subsample_points
 from postproc.pipeline.project import load_project
@@ -21,6 +20,7 @@ from postproc.pipeline.viewer import load_scene, scene_document
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.cameras import PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, write_camchain, write_target_yaml
+from shared.formats.ply import PlyData, write_ply
 from shared.geometry import make_pose, so3_exp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

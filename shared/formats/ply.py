@@ -1,11 +1,24 @@
-"""Binary little-endian PLY: the point clouds and meshes COLMAP writes and we write back.
+"""PLY point clouds and meshes (binary little-endian), the one reader and writer of the tree.
 
-Reads any binary_little_endian file whose elements hold scalar properties or one list
-property (faces); writes vertices (xyz, optional normals and colours) and triangles.
+What is read: any binary_little_endian file whose elements hold scalar properties or
+one list property of triangles (faces), as COLMAP's fusion and Poisson meshing, and
+every writer below, write them. The vertex element gives x, y, z and, when present,
+nx, ny, nz and red, green, blue; other elements and properties are skipped. ASCII
+and big-endian files are refused with an error naming the format (no caller writes
+or needs them).
+
+What is written: vertices as float32 x, y, z, optional float32 normals and uchar
+colours, optional triangles as `list uchar int vertex_indices`, and `comment` lines
+after the format line (the frame and units of the coordinates, say). Written to a
+temporary name and renamed, never over an existing file unless asked.
+
+Callers: SLAM landmarks (`map.ply`), the dense stage (fused points, meshes), the
+export and report tools, the simulator's truth mesh.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,8 +113,11 @@ def read_ply(path: Path | str) -> PlyData:
     return result
 
 
-def ply_bytes(ply: PlyData) -> bytes:
-    """Encode as binary little-endian PLY (float32 coordinates and normals, uchar colours)."""
+def ply_bytes(ply: PlyData, *, comments: Sequence[str] = ()) -> bytes:
+    """Encode as binary little-endian PLY (float32 coordinates and normals, uchar colours,
+    int32 triangle indices), with one `comment` line per entry of `comments`."""
+    if any("\n" in c or "\r" in c for c in comments):
+        raise ValueError("PLY comments must be single lines")
     v = np.asarray(ply.vertices, dtype=np.float64).reshape(-1, 3)
     fields: list[tuple[str, str]] = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if ply.normals is not None:
@@ -118,7 +134,9 @@ def ply_bytes(ply: PlyData) -> bytes:
         for k, axis in enumerate(("red", "green", "blue")):
             record[axis] = ply.colors[:, k]
     names = {"<f4": "float", "u1": "uchar"}
-    lines = ["ply", "format binary_little_endian 1.0", f"element vertex {len(v)}"]
+    lines = ["ply", "format binary_little_endian 1.0"]
+    lines += [f"comment {c}" for c in comments]
+    lines.append(f"element vertex {len(v)}")
     lines += [f"property {names[t]} {n}" for n, t in fields]
     faces = np.zeros((0, 3), np.int64) if ply.faces is None else np.asarray(ply.faces)
     if ply.faces is not None:
@@ -133,9 +151,11 @@ def ply_bytes(ply: PlyData) -> bytes:
     return ("\n".join(lines) + "\n").encode("ascii") + body
 
 
-def write_ply(path: Path | str, ply: PlyData, *, overwrite: bool = False) -> Path:
-    """Write `ply` (atomic; refuses to overwrite unless asked)."""
-    data = ply_bytes(ply)
+def write_ply(
+    path: Path | str, ply: PlyData, *, comments: Sequence[str] = (), overwrite: bool = False
+) -> Path:
+    """Write `ply` (atomic; refuses to overwrite unless asked); returns `path`."""
+    data = ply_bytes(ply, comments=comments)
     with atomic_path(path, overwrite=overwrite) as tmp:
         tmp.write_bytes(data)
     return Path(path)
