@@ -21,6 +21,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     *(stage.command.__name__ for stage in STAGES.values() if stage.command is not None),
     "postproc.commands.run",
     "postproc.commands.export",
+    "postproc.commands.options",
 )
 
 

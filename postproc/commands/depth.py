@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from postproc.pipeline.options import Flag, add_flags, options_from_args
+
 EXAMPLE = """\
 example:
   wreckmap-post depth --trajectory results/dive1/slam/trajectory.tum \\
@@ -22,6 +24,22 @@ trajectory_world.tum, trajectory_world_fused.tum and depth_sync.png.
 """
 
 
+# The flags of DepthOptions' fields (names kept from the first command line).
+DEPTH_FLAGS = [
+    Flag(field="method"),
+    Flag(field="time_offset_s", flag="--time-offset", metavar="SECONDS"),
+    Flag(field="max_offset_s", flag="--max-offset", metavar="SECONDS"),
+    Flag(field="estimate_drift", flag="--no-drift", negate=True),
+    Flag(field="estimate_scale", flag="--estimate-scale"),
+    Flag(field="fuse", flag="--no-fuse", negate=True),
+    Flag(field="plot", flag="--no-plot", negate=True),
+    Flag(field="depth_sigma_m", flag="--depth-sigma", metavar="METRES"),
+    Flag(field="clock_prior_window_s", flag="--clock-window", zero_is_none=True, metavar="SECONDS"),
+    Flag(field="min_evidence"),
+    Flag(field="trajectory_format"),
+]
+
+
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "depth",
@@ -37,82 +55,22 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     parser.add_argument("--dive", required=True, type=Path, help="dive CSV or dive folder")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
-    parser.add_argument(
-        "--method",
-        choices=("ours", "paper"),
-        default="ours",
-        help="ours: coarse search + robust Gauss-Newton; paper: 100 Hz cross-correlation",
-    )
-    parser.add_argument(
-        "--time-offset",
-        type=float,
-        metavar="SECONDS",
-        help="known clock offset (dive-computer minus camera time at the trajectory start): "
-        "skips the search",
-    )
-    parser.add_argument(
-        "--max-offset",
-        type=float,
-        default=15 * 3600.0,
-        metavar="SECONDS",
-        help="largest clock offset searched (default: 15 h, time-zone errors included)",
-    )
-    parser.add_argument("--no-drift", action="store_true", help="do not estimate clock drift")
-    parser.add_argument(
-        "--estimate-scale", action="store_true", help="estimate a depth scale (default: 1)"
-    )
-    parser.add_argument("--no-fuse", action="store_true", help="skip the depth-factor fusion")
-    parser.add_argument("--no-plot", action="store_true", help="skip depth_sync.png")
-    parser.add_argument(
-        "--depth-sigma",
-        type=float,
-        metavar="METRES",
-        help="one-sigma error of a depth sample (default: 0.058 m)",
-    )
-    parser.add_argument(
-        "--clock-window",
-        type=float,
-        default=300.0,
-        metavar="SECONDS",
-        help="when the depth match alone is ambiguous, look for the offset within this "
-        "distance of a whole time-zone step between the camera and dive-computer clocks "
-        "(default: 300 s; 0 turns the prior off)",
-    )
-    parser.add_argument(
-        "--min-evidence",
-        type=float,
-        default=6.0,
-        help="how much better the chosen offset must fit than any clearly different one "
-        "(log-likelihood ratio; default: 6)",
-    )
-    parser.add_argument(
-        "--trajectory-format",
-        choices=("auto", "tum", "svin"),
-        default="auto",
-        help="stamps of --trajectory: tum (decimal seconds), svin (SVIn2: seconds, '.', "
-        "nanoseconds without zero padding) or auto (decided per file; default)",
-    )
+    # The stage's options: type, default, choices and help from DepthOptions itself.
+    add_flags(parser, _options_type(), DEPTH_FLAGS)
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     parser.set_defaults(handler=_depth)
 
 
-def _depth(args: argparse.Namespace) -> int:
-    from postproc.depth.stage import DepthOptions, run
+def _options_type() -> type:
+    from postproc.depth.stage import DepthOptions
 
-    options = DepthOptions(
-        method=args.method,
-        time_offset_s=args.time_offset,
-        max_offset_s=args.max_offset,
-        estimate_drift=not args.no_drift,
-        estimate_scale=args.estimate_scale,
-        fuse=not args.no_fuse,
-        plot=not args.no_plot,
-        clock_prior_window_s=args.clock_window if args.clock_window > 0 else None,
-        min_evidence=args.min_evidence,
-        trajectory_format=args.trajectory_format,
-    )
-    if args.depth_sigma is not None:
-        options.depth_sigma_m = args.depth_sigma
+    return DepthOptions
+
+
+def _depth(args: argparse.Namespace) -> int:
+    from postproc.depth.stage import run
+
+    options = options_from_args(_options_type(), args, DEPTH_FLAGS)
     sync_path = run(options, args.trajectory, args.dive, args.out, overwrite=args.overwrite)
     print(sync_path)
     return 0
