@@ -6,7 +6,7 @@ the simulated wreck, and AprilGrid detection quality on the real photos.
     .venv/bin/python bench/bench_merge.py --scene fieldsim --every-keyframe --features \
         --seeds 8 --no-photos --cache DIR
 
-Synthetic (`postproc.merge.synthetic.make_survey`): two grids like the Pamir's
+Synthetic (`sim.targets.make_survey`): two grids like the Pamir's
 (4x2 and 5x4 tags of 88 mm, 10 m apart on a tilted deck), dives filming each
 grid in 2 passes of 10 keyframes at 0.8-2 m and up to 55 degrees off the
 normal, 960x540 images with strong barrel distortion, blur and noise; SLAM
@@ -88,16 +88,6 @@ import numpy.typing as npt
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("WRECKMAP_PROGRESS", "0")
 
-from postproc.merge.synthetic import (
-    SurveyOptions,
-    SurveyTruth,
-    apply_slam_error,
-    make_survey,
-    outlier_pose_error,
-    random_pose_error,
-    write_slam_folder,
-)
-
 from postproc.merge.stage import MergeOptions, run
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.aprilgrid_detection import (
@@ -109,6 +99,15 @@ from shared.calibration.aprilgrid_detection import (
 from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose, make_pose, pose_difference, rotation_mean_chordal
 from shared.trajectory import Trajectory
+from sim.targets import (
+    SurveyOptions,
+    SurveyTruth,
+    apply_slam_error,
+    make_survey,
+    outlier_pose_error,
+    random_pose_error,
+    write_slam_folder,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 FloatArray = npt.NDArray[np.float64]
@@ -526,7 +525,7 @@ def main() -> int:
         "--scene",
         choices=("synthetic", "fieldsim"),
         default="synthetic",
-        help="synthetic: postproc.merge.synthetic surveys; fieldsim: sim's wreck and routes",
+        help="synthetic: sim.targets surveys; fieldsim: sim's wreck and routes",
     )
     parser.add_argument("--duration", type=float, default=240.0, help="fieldsim: s per dive")
     parser.add_argument(

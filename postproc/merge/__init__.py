@@ -2,9 +2,8 @@
 
 Tags are found by `shared.calibration.aprilgrid_detection` (Kalibr's convention,
 sub-pixel corners). Modules: `target_pose` (whole-grid PnP through the camera
-model), `averaging` (robust SE(3) means and
-their covariances; pure math), `align` (session-to-session transforms, 4 and 6
-DoF; pure math), `paper` (the paper's method, for comparison), `synthetic`
-(rendered views and SLAM-like folders for tests and the bench), `plots`, and
-`stage` (`MergeOptions`, `run`).
+model), `averaging` (robust SE(3) means and their covariances; pure math), `align`
+(session-to-session transforms, 4 and 6 DoF; pure math), `paper` (the paper's
+method, for comparison), `plots`, and `stage` (`MergeOptions`, `run`). Simulated
+surveys for its tests and bench: `sim.targets`.
 """

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from postproc.merge.synthetic import write_slam_folder
 from shared.calibration.cameras import PinholeRadtan
 from shared.geometry import invert_pose, make_pose, so3_exp
 from shared.trajectory import Trajectory
+from sim.targets import write_slam_folder
 
 FloatArray = npt.NDArray[np.float64]
 PIXELS_PER_M = 120.0

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from postproc.merge.synthetic import default_camera, look_at
 
 from postproc.merge.paper import (
     combine_candidates,
@@ -16,7 +15,8 @@ from postproc.merge.paper import (
 )
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.aprilgrid_detection import GridObservation
-from shared.geometry import invert_pose, make_pose, pose_difference, so3_exp
+from shared.geometry import invert_pose, look_at, make_pose, pose_difference, so3_exp
+from sim.targets import default_camera
 
 
 def test_euler_round_trip_and_convention():

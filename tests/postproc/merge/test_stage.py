@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from postproc.merge.stage import MergeOptions, pass_labels, run, session_names
-from postproc.merge.synthetic import SurveyOptions, default_camera, default_targets, make_survey
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.kalibr import write_target_yaml
 from shared.errors import InputError, OutputExistsError, StageError
 from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose, make_pose, pose_difference
 from shared.trajectory import Trajectory
+from sim.targets import SurveyOptions, default_camera, default_targets, make_survey
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -331,7 +331,7 @@ def test_session_anchor_is_the_first_slam_pose(tmp_path, caplog):
 
 def test_drift_weighting_leans_on_the_first_pass(tmp_path, caplog):
     """Passes a minute apart in sessions that drift as a random walk from their first pose."""
-    from postproc.merge.synthetic import apply_slam_error
+    from sim.targets import apply_slam_error
 
     options = SurveyOptions(
         sessions=2,

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from postproc.merge.averaging import pose_residuals
-from postproc.merge.synthetic import default_camera, look_at
 from postproc.merge.target_pose import estimate_target_pose
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.cameras import PinholeEquidistant
-from shared.geometry import invert_pose, pose_difference
+from shared.geometry import invert_pose, look_at, pose_difference
+from sim.targets import default_camera
 
 GRID = AprilGridTarget(tag_rows=4, tag_cols=5, tag_size_m=0.088, tag_spacing_ratio=0.3)
 CAMERAS = {

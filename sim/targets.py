@@ -1,4 +1,4 @@
-"""Synthetic AprilGrid views and SLAM-like result folders, for tests and the bench.
+"""Synthetic AprilGrid views and SLAM-like result folders: surveys for the merge stage.
 
 `render_view` ray-casts every pixel of a camera (distortion included,
 through `CameraModel.unproject`) onto the planes of one or more targets and
@@ -28,7 +28,7 @@ from shared.calibration.aprilgrid import (
 from shared.calibration.cameras import CameraModel, PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, write_camchain
 from shared.formats.tum import write_tum
-from shared.geometry import invert_pose, make_pose
+from shared.geometry import invert_pose, look_at, make_pose
 from shared.trajectory import Trajectory
 
 FloatArray = npt.NDArray[np.float64]
@@ -163,21 +163,6 @@ def _image_region(
     inside_v = (v >= lo[1]) & (v <= hi[1])
     result: npt.NDArray[np.bool_] = (inside_v[:, None] & inside_u[None, :]).ravel()
     return result
-
-
-def look_at(eye: FloatArray, target_point: FloatArray, up: FloatArray) -> FloatArray:
-    """`T_X_C` of a camera at `eye` looking at `target_point` (OpenCV axes; `up` roughly -y)."""
-    z = np.asarray(target_point, float) - np.asarray(eye, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, float))
-    if np.linalg.norm(x) < 1e-9:
-        x = np.cross(z, np.array([1.0, 0.0, 0.0]))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack((x, y, z))
-    pose[:3, 3] = eye
-    return pose
 
 
 def write_slam_folder(
