@@ -19,8 +19,13 @@ views only (`ViewSelectionOptions`: dense work grows with the surveyed surface, 
 keyframe count; every keyframe stays a stereo source), one job per reference through a
 map function (`run(..., map_fn=...)`: a process pool or Dask tasks, see
 `postproc.pipeline.parallel`), each job writing its maps atomically into the shared
-workspace. Every step skips what is already on disk (depth maps per image), so an
-interrupted run resumes; `overwrite=True` redoes everything.
+workspace.
+
+The resume rule of every stage (`shared.folders.rebuild`): a complete result of the same
+inputs and options is kept, another is refused unless `overwrite`; the run works under a
+temporary name beside `out_dir` and is swapped in when complete. Every step skips what
+is already there (depth maps per image), so an interrupted run resumes on the next run
+with the same inputs and options; `overwrite=True` redoes everything.
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -43,14 +48,13 @@ from postproc.dense.fusion import FusionOptions
 from postproc.dense.meshing import MeshingOptions
 from postproc.dense.stereo_cpu import CpuStereoOptions
 from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
-from shared.errors import InputError, OutputExistsError, StageError
+from shared.errors import InputError, StageError
+from shared.folders import DenseFolder, rebuild, result_stamp
 from shared.progress import MapFn, serial_map
 
 log = logging.getLogger(__name__)
 
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
-# The fused points that the mesh is built from (`DenseOptions.mesh_min_images`).
-SUPPORTED_PLY = "fused_supported.ply"
 # Where the SfM stage may have put its model and images, in the order tried.
 MODEL_SUBDIRS = ("sparse", "model", "sparse/0", ".")
 IMAGE_SUBDIRS = ("images", "keyframes")
@@ -62,20 +66,28 @@ _MIN_POINTS_FOR_RANGE = 10
 class DenseOptions:
     """What the dense stage does.
 
-    max_image_size_px: longest side of the undistorted images (and so of the depth maps);
-    backend: "auto" (PatchMatch when pycolmap has CUDA, else CPU), "cpu" or "patchmatch";
-    image_dir: the images the model names (None: look beside the model);
+    max_image_size_px: longest side of the undistorted images (and so of the depth maps).
+    backend: "auto" (PatchMatch when pycolmap has CUDA, else CPU), "cpu" or "patchmatch".
+    image_dir: the images the model names (None: look beside the model).
     fallback_depth_range_m: (near, far) camera depths searched by an image that sees too
-    few sparse points to know its own; mesh_min_images: fused points seen in fewer
-    images than this are left out of the mesh (`fused_supported.ply`: with fusion's
-    min_num_pixels 1, single-image depths complete the cloud, but scattered ones make
-    Poisson grow surface nothing supports); view_selection: which images get a depth map of
-    their own (the CPU backend; every image stays a stereo source); colour_correction: also write
-    `fused_corrected.ply` and mesh it; make_mesh: run Poisson meshing.
+        few sparse points to know its own.
+    view_selection: which images get a depth map of their own (the CPU backend; every
+        image stays a stereo source).
+    neighbours: how the stereo sources of a reference image are scored.
+    stereo: the CPU stereo's matching.
+    fusion: COLMAP's stereo fusion.
+    meshing: the screened Poisson mesh.
+    colour_correction: also write `fused_corrected.ply` (attenuation removed) and mesh it.
+    colour: the water's attenuation and veiling light (estimated when not given).
+    make_mesh: run Poisson meshing.
+    mesh_min_images: fused points seen in fewer images than this are left out of the
+        mesh (`fused_supported.ply`: with fusion's min_num_pixels 1, single-image depths
+        complete the cloud, but scattered ones make Poisson grow surface nothing
+        supports).
     """
 
     max_image_size_px: int = 960
-    backend: str = "auto"
+    backend: Literal["auto", "cpu", "patchmatch"] = "auto"
     image_dir: Path | None = None
     fallback_depth_range_m: tuple[float, float] = (0.3, 20.0)
     view_selection: ViewSelectionOptions = field(default_factory=ViewSelectionOptions)
@@ -424,30 +436,39 @@ def run(
     """
     import pycolmap
 
+    sfm_dir = Path(sfm_dir)
+    folder = DenseFolder(out_dir)
+    model_dir = find_model_dir(sfm_dir)
+    names = registered_image_names(model_dir)
+    image_dir = find_image_dir(sfm_dir, names, options.image_dir)
+    backend_name = choose_backend(options.backend, has_cuda=bool(pycolmap.has_cuda))
+    stamp = result_stamp("dense", options, sfm=sfm_dir, images=image_dir)
+    stamp["backend"] = backend_name  # "auto" resolves by the machine's pycolmap
+    with rebuild(folder, stamp, overwrite=overwrite, resumable=True) as work:
+        if work is not None:
+            _build(options, sfm_dir, model_dir, image_dir, backend_name, work, map_fn)
+    return folder.mesh if options.make_mesh else folder.fused
+
+
+def _build(
+    options: DenseOptions,
+    sfm_dir: Path,
+    model_dir: Path,
+    image_dir: Path,
+    backend_name: str,
+    out: DenseFolder,
+    map_fn: MapFn | None,
+) -> None:
+    """The dense run itself in `out` (resumes what an interrupted run left there)."""
     from postproc.dense.colmap_io import read_pinhole_views
     from postproc.dense.fusion import fuse
     from postproc.dense.meshing import mesh
     from shared.fsutil import write_text_atomic
 
-    sfm_dir, out_dir = Path(sfm_dir), Path(out_dir)
-    model_dir = find_model_dir(sfm_dir)
-    names = registered_image_names(model_dir)
-    image_dir = find_image_dir(sfm_dir, names, options.image_dir)
-    backend_name = choose_backend(options.backend, has_cuda=bool(pycolmap.has_cuda))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    workspace = DenseWorkspace(out_dir / "workspace")
-    fused_ply = out_dir / "fused.ply"
-    corrected_ply = out_dir / "fused_corrected.ply"
-    mesh_ply = out_dir / "mesh.ply"
-    report_path = out_dir / "dense.json"
-    if overwrite:
-        for path in (fused_ply, corrected_ply, mesh_ply, report_path, out_dir / SUPPORTED_PLY):
-            path.unlink(missing_ok=True)
-        fused_ply.with_name(fused_ply.name + ".vis").unlink(missing_ok=True)
-        shutil.rmtree(workspace.root, ignore_errors=True)
-    elif report_path.exists() and (mesh_ply.exists() or not options.make_mesh):
-        log.info("%s: already complete (pass overwrite to redo)", out_dir)
-        return mesh_ply if options.make_mesh else fused_ply
+    workspace = DenseWorkspace(out.workspace)
+    fused_ply = out.fused
+    corrected_ply = out.fused_corrected
+    mesh_ply = out.mesh
     timings: dict[str, float] = {}
     report: dict[str, Any] = {
         "sfm_dir": str(sfm_dir),
@@ -459,12 +480,9 @@ def run(
 
     start = time.perf_counter()
     if not workspace.is_undistorted():
-        if workspace.root.exists():
-            raise OutputExistsError(
-                f"{workspace.root}: exists but is not a complete workspace (pass overwrite)"
-            )
+        # Interrupted while undistorting: start the workspace again.
+        shutil.rmtree(workspace.root, ignore_errors=True)
         undistort(options, model_dir, image_dir, workspace.root)
-    _check_workspace_size(workspace, options.max_image_size_px)
     timings["undistort_s"] = time.perf_counter() - start
     views = read_pinhole_views(workspace.sparse_dir)
     report["images"] = len(views)
@@ -505,22 +523,19 @@ def run(
         timings["colour_s"] = time.perf_counter() - start
         mesh_input = corrected_ply
 
-    result = fused_ply
     if options.make_mesh:
         start = time.perf_counter()
         if not mesh_ply.exists() and options.mesh_min_images > 1:
-            supported = out_dir / SUPPORTED_PLY
             mesh_input = supported_points(
-                mesh_input, fused_ply.with_name(fused_ply.name + ".vis"), supported,
+                mesh_input, out.fused_visibility, out.fused_supported,
                 min_images=options.mesh_min_images,
             )  # fmt: skip
         if not mesh_ply.exists():
             report["mesh"] = asdict(mesh(options.meshing, mesh_input, mesh_ply))
         timings["meshing_s"] = time.perf_counter() - start
-        result = mesh_ply
     report["timings"] = timings
-    write_text_atomic(report_path, json.dumps(report, indent=2) + "\n", overwrite=True)
-    return result
+    # dense.json last: the folder's completeness marker.
+    write_text_atomic(out.report, json.dumps(report, indent=2) + "\n", overwrite=True)
 
 
 def reference_views(
@@ -561,19 +576,6 @@ def supported_points(fused_ply: Path, visibility: Path, out_ply: Path, *, min_im
         colors=None if cloud.colors is None else cloud.colors[keep],
     )
     return write_ply(out_ply, kept, overwrite=True)
-
-
-def _check_workspace_size(workspace: DenseWorkspace, max_image_size_px: int) -> None:
-    """Refuse to resume a workspace undistorted at another image size."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(str(workspace.sparse_dir))
-    longest = max(max(c.width, c.height) for c in rec.cameras.values())
-    if max_image_size_px > 0 and longest > max_image_size_px:
-        raise OutputExistsError(
-            f"{workspace.root}: undistorted at {longest} px, larger than the "
-            f"{max_image_size_px} px asked (pass overwrite to redo)"
-        )
 
 
 def _jsonable(value: Any) -> Any:

@@ -35,8 +35,9 @@ Images are decoded one thread ahead (`prefetch`). A trajectory whose
 keyframes move faster than `SlamOptions.max_speed_m_s` has diverged and is
 refused with a StageError rather than written.
 
-The folder is written under a temporary name and renamed when complete; a
-complete result already on disk is kept (returned as is) unless overwrite.
+The folder is written under a temporary name and swapped in when complete
+(`shared.folders.rebuild`, the resume rule of every stage): a complete result of
+the same inputs and options is kept; another is refused unless overwrite.
 """
 
 from __future__ import annotations
@@ -80,9 +81,9 @@ from shared.calibration.kalibr import (
     write_imu_yaml,
 )
 from shared.errors import InputError, StageError
+from shared.folders import SlamFolder, rebuild, result_stamp
 from shared.formats.ply import PlyData, ply_bytes
 from shared.formats.tum import write_tum
-from shared.fsutil import atomic_path
 from shared.progress import progress
 from shared.trajectory import Trajectory
 
@@ -90,8 +91,6 @@ LOG = logging.getLogger(__name__)
 LANDMARKS_PLY_COMMENT = "wreckmap SLAM landmarks, session frame S, metres"
 
 T = TypeVar("T")
-
-RESULT_FILES = ("trajectory.tum", "keyframes.tum", "map.ply", "stats.json")
 
 
 @dataclass(kw_only=True)
@@ -253,15 +252,31 @@ def run(
     """Run SLAM on an EuRoC or session folder; write the SLAM result folder `out_dir`.
 
     `camchain` / `imu_yaml` replace the calibration the input carries.
-    Returns `out_dir`. A complete result already there is returned untouched
-    unless `overwrite`. Raises InputError for unreadable inputs or missing
-    calibration, StageError when no trajectory can be estimated.
+    Returns `out_dir`. The resume rule of every stage (`shared.folders.rebuild`): a
+    complete result of the same inputs and options is kept; another is refused unless
+    `overwrite`, then rebuilt beside it and swapped in. Raises InputError for unreadable
+    inputs or missing calibration, StageError when no trajectory can be estimated.
     """
-    out = Path(out_dir)
-    if not overwrite and all((out / name).is_file() for name in RESULT_FILES):
-        LOG.info("%s: SLAM result already there (pass overwrite to redo it)", out)
-        return out
-    source = open_input(Path(input_path))
+    folder = SlamFolder(out_dir)
+    stamp = result_stamp(
+        "slam", options, recording=input_path, camchain=camchain, imu_yaml=imu_yaml
+    )
+    with rebuild(folder, stamp, overwrite=overwrite) as work:
+        if work is not None:
+            _build(options, Path(input_path), work, camchain=camchain, imu_yaml=imu_yaml)
+    return folder.path
+
+
+def _build(
+    options: SlamOptions,
+    input_path: Path,
+    folder: SlamFolder,
+    *,
+    camchain: Path | str | None,
+    imu_yaml: Path | str | None,
+) -> None:
+    """The SLAM run itself, written into the empty folder `folder`."""
+    source = open_input(input_path)
     if options.use_imu and len(source.imu) < 2:
         raise InputError(
             f"{source.name}: no IMU data in the input (expected mav0/imu0 or /imu0); "
@@ -331,109 +346,105 @@ def run(
         )
     started = time.monotonic()
     started_cpu = time.process_time()
-    with atomic_path(out, overwrite=overwrite) as tmp:
-        keyframe_dir = tmp / "keyframes"
-        keyframe_dir.mkdir(parents=True)
-        total = source.frame_count
-        if options.max_frames is not None:
-            total = min(total, options.max_frames)
-        tracking_failures = 0
-        coverage = (
-            ImuCoverage.of(source.imu, round(calibration.timeshift_cam_imu_s * 1e9))
-            if options.use_imu
+    keyframe_dir = folder.keyframes
+    keyframe_dir.mkdir(parents=True)
+    total = source.frame_count
+    if options.max_frames is not None:
+        total = min(total, options.max_frames)
+    tracking_failures = 0
+    coverage = (
+        ImuCoverage.of(source.imu, round(calibration.timeshift_cam_imu_s * 1e9))
+        if options.use_imu
+        else None
+    )
+    previous_stamp: int | None = None
+    first_stamp: int | None = None
+    last_stamp = 0
+    for count, frame in enumerate(
+        progress(prefetch(source.frames()), total=total, desc="slam", unit="frame")
+    ):
+        if options.max_frames is not None and count >= options.max_frames:
+            break
+        rotation = (
+            _gyro_rotation(estimator, calibration, previous_stamp, frame.stamp_ns)
+            if previous_stamp is not None and isinstance(estimator, SlamEstimator)
             else None
         )
-        previous_stamp: int | None = None
-        first_stamp: int | None = None
-        last_stamp = 0
-        for count, frame in enumerate(
-            progress(prefetch(source.frames()), total=total, desc="slam", unit="frame")
-        ):
-            if options.max_frames is not None and count >= options.max_frames:
-                break
-            rotation = (
-                _gyro_rotation(estimator, calibration, previous_stamp, frame.stamp_ns)
-                if previous_stamp is not None and isinstance(estimator, SlamEstimator)
-                else None
-            )
-            tracks = frontend.track(
-                frame.stamp_ns, frame.image, cam_rotation_now_from_prev=rotation
-            )
-            if len(tracks.track_ids) < options.min_tracks_ok:
-                tracking_failures += 1
-            previous_stamp = frame.stamp_ns
-            if coverage is not None and not coverage.covers(frame.stamp_ns):
-                # The IMU starts after or ends before this image: tracked (so the tracks
-                # run on), not estimated.
-                continue
-            decision = estimator.process(tracks, functools.partial(_describe, frontend, tracks))
-            if decision.is_keyframe:
-                _save_keyframe(keyframe_dir, frame.stamp_ns, frame.image, frame.encoded_png)
-            first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
-            last_stamp = frame.stamp_ns
-        if coverage is not None:
-            coverage.warn(source.name)
-        try:
-            result = estimator.finish()
-        except StageError as error:
-            raise StageError(f"{source.name}: {error}") from error
-        if stabilised:
-            result = gravity_and_scale(
-                result,
-                source.imu,
-                shift_ns=round(calibration.timeshift_cam_imu_s * 1e9),
-                gravity_m_s2=options.estimator.backend.gravity_m_s2,
-            )
-        if check is not None:
-            result.stats.update(check.as_stats())
-            result.stats["camera_imu_rigid"] = {"rigid": "yes", "not rigid": "no"}.get(
-                check.verdict, "unknown"
-            )
-        if stabilised and not result.stats.get("metric_scale"):
-            LOG.warning(
-                "%s: the IMU cannot fix the scale of the stabilised video's path (scale fit "
-                "%.3g +- %.2g): the trajectory is gravity-aligned but NOT in metres",
-                source.name,
-                result.stats["imu_scale_fit"],
-                result.stats["imu_scale_standard_error"],
-            )
-        metric = options.use_imu and result.stats.get("metric_scale", True)
-        if options.max_speed_m_s is not None and metric:  # VO scale is arbitrary
-            _check_speed(result, options.max_speed_m_s, source.name)
-        run_time_s = time.monotonic() - started
-        cpu_time_s = time.process_time() - started_cpu
-        duration_s = (last_stamp - (first_stamp or last_stamp)) * 1e-9
-        _write_result(
-            tmp,
+        tracks = frontend.track(frame.stamp_ns, frame.image, cam_rotation_now_from_prev=rotation)
+        if len(tracks.track_ids) < options.min_tracks_ok:
+            tracking_failures += 1
+        previous_stamp = frame.stamp_ns
+        if coverage is not None and not coverage.covers(frame.stamp_ns):
+            # The IMU starts after or ends before this image: tracked (so the tracks
+            # run on), not estimated.
+            continue
+        decision = estimator.process(tracks, functools.partial(_describe, frontend, tracks))
+        if decision.is_keyframe:
+            _save_keyframe(folder, frame.stamp_ns, frame.image, frame.encoded_png)
+        first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
+        last_stamp = frame.stamp_ns
+    if coverage is not None:
+        coverage.warn(source.name)
+    try:
+        result = estimator.finish()
+    except StageError as error:
+        raise StageError(f"{source.name}: {error}") from error
+    if stabilised:
+        result = gravity_and_scale(
             result,
-            calibration,
-            noise,
-            stats={
-                "input": source.name,
-                "run_time_s": run_time_s,
-                "sequence_duration_s": duration_s,
-                "real_time_factor": duration_s / run_time_s if run_time_s > 0 else 0.0,
-                # CPU seconds of this process (all its threads): on a shared machine the
-                # wall-clock factor also measures the other load.
-                "cpu_time_s": cpu_time_s,
-                "real_time_factor_cpu": duration_s / cpu_time_s if cpu_time_s > 0 else 0.0,
-                "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-                "tracking_failures": tracking_failures,
-                **(coverage.as_stats() if coverage is not None else {}),
-                **source.imu_cleaning.as_stats(),
-                "frontend_width_px": frontend.image_size[0],
-                "lost_tracks": frontend.lost_tracks,
-                "rejected_tracks": frontend.rejected_tracks,
-                "recovered_tracks": frontend.recovered_tracks,
-                "options": asdict(options),
-            },
+            source.imu,
+            shift_ns=round(calibration.timeshift_cam_imu_s * 1e9),
+            gravity_m_s2=options.estimator.backend.gravity_m_s2,
         )
-        # Only keyframes the estimator kept have images (frames outside the IMU span do not).
-        kept = {f"{s}.png" for s in result.keyframe_stamps_ns.tolist()}
-        for path in keyframe_dir.iterdir():
-            if path.name not in kept:
-                path.unlink()
-    return out
+    if check is not None:
+        result.stats.update(check.as_stats())
+        result.stats["camera_imu_rigid"] = {"rigid": "yes", "not rigid": "no"}.get(
+            check.verdict, "unknown"
+        )
+    if stabilised and not result.stats.get("metric_scale"):
+        LOG.warning(
+            "%s: the IMU cannot fix the scale of the stabilised video's path (scale fit "
+            "%.3g +- %.2g): the trajectory is gravity-aligned but NOT in metres",
+            source.name,
+            result.stats["imu_scale_fit"],
+            result.stats["imu_scale_standard_error"],
+        )
+    metric = options.use_imu and result.stats.get("metric_scale", True)
+    if options.max_speed_m_s is not None and metric:  # VO scale is arbitrary
+        _check_speed(result, options.max_speed_m_s, source.name)
+    run_time_s = time.monotonic() - started
+    cpu_time_s = time.process_time() - started_cpu
+    duration_s = (last_stamp - (first_stamp or last_stamp)) * 1e-9
+    _write_result(
+        folder,
+        result,
+        calibration,
+        noise,
+        stats={
+            "input": source.name,
+            "run_time_s": run_time_s,
+            "sequence_duration_s": duration_s,
+            "real_time_factor": duration_s / run_time_s if run_time_s > 0 else 0.0,
+            # CPU seconds of this process (all its threads): on a shared machine the
+            # wall-clock factor also measures the other load.
+            "cpu_time_s": cpu_time_s,
+            "real_time_factor_cpu": duration_s / cpu_time_s if cpu_time_s > 0 else 0.0,
+            "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+            "tracking_failures": tracking_failures,
+            **(coverage.as_stats() if coverage is not None else {}),
+            **source.imu_cleaning.as_stats(),
+            "frontend_width_px": frontend.image_size[0],
+            "lost_tracks": frontend.lost_tracks,
+            "rejected_tracks": frontend.rejected_tracks,
+            "recovered_tracks": frontend.recovered_tracks,
+            "options": asdict(options),
+        },
+    )
+    # Only keyframes the estimator kept have images (frames outside the IMU span do not).
+    kept = {folder.keyframe_image(s) for s in result.keyframe_stamps_ns.tolist()}
+    for path in keyframe_dir.iterdir():
+        if path not in kept:
+            path.unlink()
 
 
 @dataclass
@@ -578,9 +589,9 @@ def _describe(frontend: KltFrontend, tracks: FrameTracks) -> tuple[IntArray, Des
 
 
 def _save_keyframe(
-    folder: Path, stamp_ns: int, image: np.ndarray, encoded_png: bytes | None
+    folder: SlamFolder, stamp_ns: int, image: np.ndarray, encoded_png: bytes | None
 ) -> None:
-    path = folder / f"{stamp_ns}.png"
+    path = folder.keyframe_image(stamp_ns)
     if encoded_png is not None:
         path.write_bytes(encoded_png)  # as recorded, byte for byte
         return
@@ -591,27 +602,26 @@ def _save_keyframe(
 
 
 def _write_result(
-    folder: Path,
+    folder: SlamFolder,
     result: SlamResult,
     calibration: CameraCalibration,
     noise: ImuNoise | None,
     *,
     stats: dict[str, object],
 ) -> None:
+    write_tum(folder.trajectory, Trajectory(result.frame_stamps_ns, result.session_from_body))
     write_tum(
-        folder / "trajectory.tum", Trajectory(result.frame_stamps_ns, result.session_from_body)
-    )
-    write_tum(
-        folder / "keyframes.tum",
+        folder.keyframes_tum,
         Trajectory(result.keyframe_stamps_ns, result.keyframe_session_from_cam),
     )
-    (folder / "calib").mkdir()
-    write_camchain(folder / "calib" / "camchain.yaml", [calibration])
+    folder.calib.mkdir()
+    write_camchain(folder.camchain, [calibration])
     if noise is not None:
-        write_imu_yaml(folder / "calib" / "imu.yaml", noise)
-    (folder / "map.ply").write_bytes(
+        write_imu_yaml(folder.imu_yaml, noise)
+    folder.map_ply.write_bytes(
         ply_bytes(PlyData(vertices=result.landmarks_s), comments=[LANDMARKS_PLY_COMMENT])
     )
     path_m = Trajectory(result.frame_stamps_ns, result.session_from_body).path_length_m()
     summary = {**stats, **result.stats, "path_length_m": path_m}
-    (folder / "stats.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    # stats.json last: the folder's completeness marker.
+    folder.stats.write_text(json.dumps(summary, indent=2, default=str) + "\n")

@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -120,23 +121,27 @@ def test_finished_run_is_not_redone(dense_dir: Path, sfm: SyntheticSfm) -> None:
     assert {p: p.stat().st_mtime_ns for p in dense_dir.iterdir() if p.is_file()} == before
 
 
-def test_resumes_per_image(dense_dir: Path, sfm: SyntheticSfm, tmp_path: Path) -> None:
+def test_resumes_per_image(sfm: SyntheticSfm, tmp_path: Path) -> None:
     out = tmp_path / "dense"
-    shutil.copytree(dense_dir, out)
-    ws = DenseWorkspace(out / "workspace")
-    # As if interrupted while computing the depth map of the fifth image.
-    ws.depth_map_path(sfm.names[4]).unlink()
-    for name in ("fused.ply", "fused.ply.vis", "mesh.ply", "dense.json"):
-        (out / name).unlink()
-    kept = ws.depth_map_path(sfm.names[0]).stat().st_mtime_ns
+
+    def interrupted(fn: Any, items: list[Any]) -> list[Any]:
+        # Three depth maps computed, then the run is killed.
+        for item in items[:3]:
+            fn(item)
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run(quick_options(), sfm.folder, out, map_fn=interrupted)
+    assert not out.exists()  # nothing under the final name
     run(quick_options(), sfm.folder, out)
     report = json.loads((out / "dense.json").read_text())
-    assert sfm.names[4] in references(out)
     assert report["depth_maps"]["computed"] == 1
     assert report["depth_maps"]["skipped"] == report["reference_images"] - 1 == 3
-    assert ws.depth_map_path(sfm.names[0]).stat().st_mtime_ns == kept
     assert (out / "mesh.ply").is_file()
-    # overwrite redoes everything.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dense"]  # no partial left
+    # Other options: the result is refused, not returned as theirs; overwrite redoes all.
+    with pytest.raises(OutputExistsError, match="other inputs or options"):
+        run(quick_options(make_mesh=False), sfm.folder, out)
     run(quick_options(make_mesh=False), sfm.folder, out, overwrite=True)
     report = json.loads((out / "dense.json").read_text())
     assert report["depth_maps"]["computed"] == 4
@@ -167,10 +172,7 @@ def test_colour_correction_writes_a_corrected_cloud(
     dense_dir: Path, sfm: SyntheticSfm, tmp_path: Path
 ) -> None:
     out = tmp_path / "dense"
-    shutil.copytree(dense_dir, out)
-    (out / "dense.json").unlink()
-    (out / "mesh.ply").unlink()
-    options = quick_options(colour_correction=True)
+    options = quick_options(colour_correction=True, make_mesh=False)
     options.colour.attenuation_per_m = (0.40, 0.13, 0.11)
     options.colour.backscatter = (0.02, 0.13, 0.16)
     run(options, sfm.folder, out)
@@ -228,15 +230,18 @@ def test_model_without_sparse_points_cannot_fuse(tmp_path: Path, sfm: SyntheticS
         run(options, folder, tmp_path / "out")
 
 
-def test_workspace_checks(tmp_path: Path, dense_dir: Path, sfm: SyntheticSfm) -> None:
+def test_a_half_or_foreign_folder_is_refused(
+    tmp_path: Path, dense_dir: Path, sfm: SyntheticSfm
+) -> None:
     out = tmp_path / "dense"
     shutil.copytree(dense_dir, out)
     (out / "dense.json").unlink()
-    with pytest.raises(OutputExistsError, match=r"undistorted at \d+ px, larger than the 128 px"):
+    with pytest.raises(OutputExistsError, match="holds other files, not a complete dense"):
         run(quick_options(max_image_size_px=128), sfm.folder, out)
+    assert (out / "mesh.ply").is_file()
     broken = tmp_path / "broken"
     (broken / "workspace" / "images").mkdir(parents=True)
-    with pytest.raises(OutputExistsError, match="not a complete workspace"):
+    with pytest.raises(OutputExistsError, match="not a complete dense folder"):
         run(quick_options(), sfm.folder, broken)
 
 

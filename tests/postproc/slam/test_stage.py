@@ -87,8 +87,13 @@ def test_existing_result_is_kept_unless_overwrite(wall_euroc: Path, tmp_path: Pa
     out = run(options, wall_euroc, tmp_path / "slam")
     stats = (out / "stats.json").read_text()
     assert json.loads(stats)["frames"] == 60
-    # Complete result: returned as is, nothing recomputed.
+    # Complete result of the same inputs and options: returned as is, nothing recomputed.
     assert run(options, wall_euroc, out) == out
+    assert (out / "stats.json").read_text() == stats
+    # Other options: refused (the result is not returned as if it were theirs).
+    other = SlamOptions(frontend=FrontendOptions(width_px=0), max_frames=50)
+    with pytest.raises(OutputExistsError, match="other inputs or options"):
+        run(other, wall_euroc, out)
     assert (out / "stats.json").read_text() == stats
     # Incomplete folder in the way: refused.
     (out / "stats.json").unlink()
