@@ -1,7 +1,7 @@
 """Depth sync accuracy, ours against the paper's method, and what depth factors do to z.
 
 Run: .venv/bin/python bench/bench_depth.py [--seeds 3]
-Synthetic dives (postproc.depth.simulate): 10 s dive-computer samples with
+Synthetic dives (sim.dive): 10 s dive-computer samples with
 0.1 m quantisation, 5 cm noise and 1 % spikes, a 30 min trajectory inside a
 45 min dive. Part 1 (no VIO drift, to isolate the sync): for clock offsets of
 seconds to hours and drifts of +-50 ppm, the time error (RMS over the
@@ -44,7 +44,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from postproc.depth.factors import FusionSettings, fuse_depth
 from postproc.depth.paper import paper_depth_sync
-from postproc.depth.simulate import SyntheticDive, simulate_dive
 from postproc.depth.sync import (
     AmbiguityLimits,
     ClockPrior,
@@ -55,6 +54,7 @@ from postproc.depth.sync import (
     fit_depth_sync,
     solve_clock_offset,
 )
+from sim.dive import SyntheticDive, simulate_dive
 
 WRONG_S = 5.0  # an answer further off than this is wrong (the issue's measure)
 

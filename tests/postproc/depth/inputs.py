@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from postproc.depth.simulate import SyntheticDive
 from shared.formats.diveprofile import write_dive
 from shared.formats.tum import write_tum
 from shared.trajectory import Trajectory
+from sim.dive import SyntheticDive
 
 
 def write_inputs(folder: Path, sim: SyntheticDive) -> tuple[Path, Path]:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from postproc.depth.factors import FusionSettings, fuse_depth, select_nodes, z_prior_factor
-from postproc.depth.simulate import simulate_dive
 from postproc.depth.sync import fit_depth_sync
+from sim.dive import simulate_dive
 
 from .inputs import relative_inputs
 

@@ -16,7 +16,6 @@ import json
 import numpy as np
 import pytest
 
-from postproc.depth.simulate import simulate_dive
 from postproc.depth.stage import DepthOptions, run
 from postproc.depth.sync import (
     coarse_offset_search,
@@ -30,6 +29,7 @@ from postproc.depth.sync import (
 from shared.formats.diveprofile import DiveProfile, stamp_s_to_iso, write_dive
 from shared.formats.tum import write_tum
 from shared.trajectory import Trajectory
+from sim.dive import simulate_dive
 
 from .inputs import relative_inputs, write_inputs
 

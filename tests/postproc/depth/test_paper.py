@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from postproc.depth.paper import paper_depth_sync
-from postproc.depth.simulate import simulate_dive
 from postproc.depth.sync import SyncError
+from sim.dive import simulate_dive
 
 from .inputs import relative_inputs
 

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from postproc.depth.simulate import simulate_dive
 from postproc.depth.stage import DepthOptions, run
 from shared.errors import StageError
 from shared.formats.diveprofile import write_dive
 from shared.formats.tum import read_tum
+from sim.dive import simulate_dive
 
 from .inputs import write_inputs
 

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from postproc.depth.simulate import simulate_dive
 from postproc.depth.stage import DepthOptions, run
 from shared.geometry import quat_xyzw_from_matrix
 from shared.trajectory import Trajectory
+from sim.dive import simulate_dive
 
 from .inputs import write_inputs
 

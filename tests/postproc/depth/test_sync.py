@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from postproc.depth.simulate import simulate_dive
 from postproc.depth.sync import (
     AmbiguityLimits,
     ClockPrior,
@@ -21,6 +20,7 @@ from postproc.depth.sync import (
     mean_huber_cost,
     solve_clock_offset,
 )
+from sim.dive import simulate_dive
 
 from .inputs import relative_inputs
 
