@@ -79,6 +79,18 @@ class Frame:
     encoded_png: bytes | None = None
 
 
+@dataclass(frozen=True, kw_only=True)
+class RecordingRequest:
+    """What a caller asks of a recording (see `open_recording`)."""
+
+    camera_topic: str | None = None
+    imu_topic: str = DEFAULT_IMU_TOPIC
+    need_camera: bool = True
+
+
+ANY_CAMERA = RecordingRequest()
+
+
 class Recording(Protocol):
     """A recording of one camera and, where the kind has one, its IMU."""
 
@@ -168,21 +180,14 @@ class EurocRecording:
 
     kind = "euroc"
 
-    def __init__(
-        self,
-        path: Path,
-        *,
-        camera_topic: str | None = None,
-        imu_topic: str = DEFAULT_IMU_TOPIC,
-        need_camera: bool = True,
-    ) -> None:
+    def __init__(self, path: Path, request: RecordingRequest = ANY_CAMERA) -> None:
         from shared.formats.euroc import read_euroc
 
         self.path = path
-        self.camera_topic = camera_topic or DEFAULT_CAMERA_TOPIC
+        self.camera_topic = request.camera_topic or DEFAULT_CAMERA_TOPIC
         self._data = read_euroc(path, as_recorded=True)
         self._mav = path / "mav0" if (path / "mav0").is_dir() else path
-        if need_camera and not (self._mav / "cam0" / "data.csv").is_file():
+        if request.need_camera and not (self._mav / "cam0" / "data.csv").is_file():
             raise InputError(f"{path}: no images (expected mav0/cam0/data.csv)")
 
     @property
@@ -226,21 +231,14 @@ class SessionRecording:
 
     kind = "session"
 
-    def __init__(
-        self,
-        path: Path,
-        *,
-        camera_topic: str | None = None,
-        imu_topic: str = DEFAULT_IMU_TOPIC,
-        need_camera: bool = True,
-    ) -> None:
+    def __init__(self, path: Path, request: RecordingRequest = ANY_CAMERA) -> None:
         from shared.archive import ArchiveReader
         from shared.archive.video import session_archives
 
         self.path = path
         self.folder = path if path.is_dir() else path.parent
         self.archives = session_archives(path)
-        self.imu_topic = imu_topic
+        self.imu_topic = request.imu_topic
         self._schemas: dict[str, str] = {}
         self._counts: dict[str, int] = {}
         for archive in self.archives:
@@ -248,9 +246,9 @@ class SessionRecording:
                 for topic, info in reader.topics().items():
                     self._schemas[topic] = info.schema_name
                     self._counts[topic] = self._counts.get(topic, 0) + info.message_count
-        self._asked_topic = camera_topic
-        self.camera_topic = self._camera_topic(camera_topic)
-        if need_camera and self.camera_topic not in self._schemas:
+        self._asked_topic = request.camera_topic
+        self.camera_topic = self._camera_topic(request.camera_topic)
+        if request.need_camera and self.camera_topic not in self._schemas:
             raise self._no_camera()
 
     def _no_camera(self) -> InputError:
@@ -366,9 +364,11 @@ class SessionRecording:
 
 
 class _NoImu:
-    """For the kinds that hold images only."""
+    """For the kinds that hold images only (and no topics: `DEFAULT_CAMERA_TOPIC`)."""
 
-    path: Path
+    def __init__(self, path: Path, request: RecordingRequest = ANY_CAMERA) -> None:
+        self.path = path
+        self.camera_topic = request.camera_topic or DEFAULT_CAMERA_TOPIC
 
     @property
     def has_imu(self) -> bool:
@@ -402,16 +402,8 @@ class ImageFolderRecording(_NoImu):
 
     kind = "images"
 
-    def __init__(
-        self,
-        path: Path,
-        *,
-        camera_topic: str | None = None,
-        imu_topic: str = DEFAULT_IMU_TOPIC,
-        need_camera: bool = True,
-    ) -> None:
-        self.path = path
-        self.camera_topic = camera_topic or DEFAULT_CAMERA_TOPIC
+    def __init__(self, path: Path, request: RecordingRequest = ANY_CAMERA) -> None:
+        super().__init__(path, request)
         self.files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not self.files:
             raise InputError(f"{path}: no images (expected {', '.join(IMAGE_SUFFIXES)} files)")
@@ -434,17 +426,6 @@ class VideoFileRecording(_NoImu):
     """A plain video file decoded with PyAV; stamps are media time from the first frame."""
 
     kind = "video"
-
-    def __init__(
-        self,
-        path: Path,
-        *,
-        camera_topic: str | None = None,
-        imu_topic: str = DEFAULT_IMU_TOPIC,
-        need_camera: bool = True,
-    ) -> None:
-        self.path = path
-        self.camera_topic = camera_topic or DEFAULT_CAMERA_TOPIC
 
     @cached_property
     def frame_count(self) -> int | None:
@@ -505,7 +486,7 @@ class RecordingKind(NamedTuple):
     """One entry of `RECORDING_KINDS`: whether a path is of the kind, and its reader."""
 
     detect: Callable[[Path], bool]
-    reader: Callable[..., Recording]
+    reader: Callable[[Path, RecordingRequest], Recording]
     expected: str
     """What the kind looks like, for the error message."""
 
@@ -556,6 +537,7 @@ def open_recording(
     """
     path = Path(path)
     kind = RECORDING_KINDS[recording_kind(path)]
-    return kind.reader(
-        path, camera_topic=camera_topic, imu_topic=imu_topic, need_camera=need_camera
+    request = RecordingRequest(
+        camera_topic=camera_topic, imu_topic=imu_topic, need_camera=need_camera
     )
+    return kind.reader(path, request)
