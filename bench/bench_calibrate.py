@@ -32,14 +32,6 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from tests.postproc.calibrate.simulation import (  # noqa: E402
-    TARGET,
-    board_views,
-    equidistant_camera,
-    radtan_camera,
-    recording,
-)
-
 from postproc.calibrate.camera_imu import (  # noqa: E402
     RotationIntervals,
     estimate_camera_imu,
@@ -56,7 +48,14 @@ from postproc.calibrate.visual_rotation import (  # noqa: E402
 from shared.calibration.aprilgrid import AprilGridTarget  # noqa: E402
 from shared.calibration.aprilgrid_detection import DetectionOptions  # noqa: E402
 from shared.geometry import rotation_angle_rad, so3_exp  # noqa: E402
-from tests.postproc.calibrate.test_two_camera import two_gyros  # noqa: E402
+from sim.calibration import (  # noqa: E402
+    TARGET,
+    board_views,
+    equidistant_camera,
+    radtan_camera,
+    recording,
+    two_gyros,
+)
 
 
 def _views(images):

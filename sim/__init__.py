@@ -1,11 +1,22 @@
-"""Simulated wreck survey: the data with exact truth that every stage is measured against.
+"""Simulation with exact truth: the data every stage is measured against (one home).
 
 Modules (pure math unless noted): `scene` (the wreck: boxes, seafloor, two AprilGrids,
 procedural textures from `textures`), `render` (ray casting through any shared camera
 model, underwater image model, range/depth images), `spline` (B-spline trajectories on
-R^3 and SO(3) with exact derivatives), `motion` (diver routes), `imu` (IMU synthesised
-from the spline, Kalibr noise), `dive` (the dive computer's log on its own clock), `mesh`
-(truth mesh, PLY writer: I/O) and `survey` (`SurveySimulator`, `run`: I/O).
+R^3 and SO(3) with exact derivatives), `motion` (diver routes), `imu` (the one IMU
+simulator: `simulate_imu` on any trajectory with exact derivatives, Kalibr noise; its
+samples are `shared.imu.ImuSamples`), `dive` (the one dive-computer model: the survey's
+dive and the depth stage's synthetic dives, logged on the computer's own clock), `mesh`
+(truth mesh, PLY writer: I/O) and `survey` (`SurveySimulator`, `run`: I/O). For single
+stages: `features` (feature-level SLAM sequences: tracks and IMU, no images),
+`targets` (AprilGrid views and SLAM-like folders for merging: I/O), `slam_like` (SLAM-like
+folders rendered from the survey, for SfM: I/O) and `calibration` (AprilGrid board views,
+hand-held sweeps with IMU, two rigs' gyros).
+
+Layers: `sim` imports `shared` (and `features` the SLAM frontend's `FrameTracks` from
+`postproc.slam.types`, the data it stands in for); `field` imports `sim` for the
+simulated rig and `wreckmap-field sim`; `postproc` never imports `sim`; tests and bench
+do. A camera's pose towards a point is `shared.geometry.look_at`.
 
 Live sources call `SurveySimulator(options).render_frame(session, t_cam_ns)` for one image
 (deterministic noise), `world_from_cam` / `world_from_body` for the truth and `imu(session)`

@@ -61,18 +61,28 @@ def default_imu_noise(rate_hz: float = 200.0) -> ImuNoise:
     )
 
 
-def default_camera(width: int, height: int) -> PinholeRadtan:
-    """A GoPro-like wide camera (about 86 degrees across) with barrel distortion."""
-    f = 0.53 * width
+def default_camera(
+    width: int,
+    height: int,
+    *,
+    focal_per_width: float = 0.53,
+    fy_per_fx: float = 1.0,
+    k1: float = -0.22,
+    k2: float = 0.05,
+) -> PinholeRadtan:
+    """A GoPro-like wide camera (about 86 degrees across at the default focal length,
+    fx = `focal_per_width` * width px) with barrel distortion and a principal point a
+    little off the centre."""
+    f = focal_per_width * width
     return PinholeRadtan(
         width=width,
         height=height,
         fx=f,
-        fy=f,
+        fy=f * fy_per_fx,
         cx=(width - 1) / 2.0 + 0.011 * width,
         cy=(height - 1) / 2.0 - 0.008 * height,
-        k1=-0.22,
-        k2=0.05,
+        k1=k1,
+        k2=k2,
         p1=3.0e-4,
         p2=-2.0e-4,
     )

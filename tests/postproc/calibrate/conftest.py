@@ -8,8 +8,7 @@ import pytest
 from postproc.calibrate.frame_selection import GridView
 from postproc.calibrate.stage import detect_grid
 from shared.calibration.aprilgrid_detection import DetectionOptions
-
-from .simulation import TARGET, board_views, radtan_camera, recording
+from sim.calibration import TARGET, board_views, radtan_camera, recording
 
 
 @pytest.fixture(scope="session")

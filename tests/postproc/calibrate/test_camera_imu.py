@@ -15,8 +15,7 @@ from postproc.calibrate.camera_imu import (
 )
 from shared.errors import StageError
 from shared.geometry import rotation_angle_rad, so3_exp
-
-from .simulation import recording
+from sim.calibration import recording
 
 MAX_GAP_NS = 50_000_000
 

@@ -14,8 +14,7 @@ from postproc.calibrate.intrinsics import (
 from postproc.calibrate.stage import detect_grid
 from shared.calibration.aprilgrid_detection import DetectionOptions
 from shared.errors import StageError
-
-from .simulation import TARGET, board_views, equidistant_camera
+from sim.calibration import TARGET, board_views, equidistant_camera
 
 
 def _relative_errors(estimate, truth):

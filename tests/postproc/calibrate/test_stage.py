@@ -31,9 +31,7 @@ from shared.calibration.kalibr import (
 from shared.errors import InputError, StageError
 from shared.formats.euroc import EurocWriter
 from shared.geometry import rotation_angle_rad
-
-from .simulation import TARGET
-from .test_two_camera import two_gyros
+from sim.calibration import TARGET, two_gyros
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -236,7 +234,7 @@ def test_run_rig_on_two_sessions(tmp_path):
     stamps0, gyro0, stamps1, gyro1, imu1_from_imu0 = two_gyros(8, offset)
     rig0 = write_imu_session(tmp_path / "rig0", stamps0, gyro0)
     rig1 = write_imu_session(tmp_path / "rig1", stamps1, gyro1)
-    from .simulation import radtan_camera
+    from sim.calibration import radtan_camera
 
     cam_from_imu0 = np.eye(4)
     cam_from_imu0[:3, 3] = (0.0, 0.01, 0.0)

@@ -7,36 +7,8 @@ import pytest
 
 from postproc.calibrate.two_camera import RigSyncOptions, estimate_rig_sync
 from shared.errors import StageError
-from shared.geometry import rotation_angle_rad, so3_exp
-from sim.imu import simulate_imu
-from sim.survey import default_cam_from_imu, default_imu_noise
-
-from .simulation import START_NS, sweep_trajectory
-
-
-def two_gyros(seed: int, offset_s: float, duration_s: float = 20.0, duration1_s=None):
-    """Rig 0 at 200 Hz; rig 1 at 197 Hz starting 1 s later, rotated, on a clock offset_s ahead."""
-    rng = np.random.default_rng(seed)
-    trajectory = sweep_trajectory(rng, default_cam_from_imu(), duration_s=duration_s + 5.0)
-    true0 = START_NS + np.arange(int(duration_s * 200)) * 5_000_000
-    imu0 = simulate_imu(trajectory, true0, noise=default_imu_noise(200.0), rng=rng)
-    true1 = (
-        START_NS
-        + 1_000_000_000
-        + np.round(np.arange(int((duration1_s or duration_s - 2.0) * 197)) / 197.0 * 1e9).astype(
-            np.int64
-        )
-    )
-    imu1 = simulate_imu(
-        trajectory,
-        true1,
-        noise=default_imu_noise(197.0),
-        rng=rng,
-        gyro_bias0_rad_s=(0.01, 0.0, -0.01),
-    )
-    imu1_from_imu0 = so3_exp(rng.normal(0.0, 1.0, 3))
-    stamps1 = true1 + round(offset_s * 1e9)
-    return true0, imu0.gyro_rad_s, stamps1, imu1.gyro_rad_s @ imu1_from_imu0.T, imu1_from_imu0
+from shared.geometry import rotation_angle_rad
+from sim.calibration import two_gyros
 
 
 @pytest.mark.parametrize(("seed", "offset_s"), [(0, 3.1234567), (1, -17.25), (2, 0.0004)])

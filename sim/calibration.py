@@ -4,7 +4,8 @@ A single AprilGrid board in an empty scene (the simulator's renderer and IMU mod
 the wreck): `board_views` gives well-spread still views for intrinsics; `recording`
 gives a hand-held sweep in front of the board as camera frames (camera clock) plus a
 200 Hz IMU (true time) with a known `cam_from_imu` and Kalibr time shift
-(t_imu = t_cam + shift). Tests and the bench import this; postproc code never does.
+(t_imu = t_cam + shift); `two_gyros` gives two rigs' gyros on one motion, each on its
+own clock. Tests and the bench import this; postproc code never does.
 """
 
 from __future__ import annotations
@@ -16,12 +17,12 @@ import numpy.typing as npt
 
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.cameras import CameraModel, PinholeEquidistant, PinholeRadtan
-from shared.geometry import so3_exp
+from shared.geometry import look_at, so3_exp
 from sim.imu import simulate_imu
 from sim.render import Renderer, WaterModel
 from sim.scene import TargetPlacement, WreckScene
 from sim.spline import SplineTrajectory
-from sim.survey import default_cam_from_imu, default_imu_noise
+from sim.survey import default_cam_from_imu, default_camera, default_imu_noise
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -31,19 +32,7 @@ START_NS = 1_700_000_000_000_000_000
 
 def radtan_camera(width: int = 640, height: int = 480) -> PinholeRadtan:
     """A GoPro-like wide camera with barrel distortion (about 80 degrees across)."""
-    f = 0.6 * width
-    return PinholeRadtan(
-        width=width,
-        height=height,
-        fx=f,
-        fy=f * 1.002,
-        cx=(width - 1) / 2.0 + 0.011 * width,
-        cy=(height - 1) / 2.0 - 0.008 * height,
-        k1=-0.20,
-        k2=0.045,
-        p1=3.0e-4,
-        p2=-2.0e-4,
-    )
+    return default_camera(width, height, focal_per_width=0.6, fy_per_fx=1.002, k1=-0.20, k2=0.045)
 
 
 def equidistant_camera(width: int = 640, height: int = 480) -> PinholeEquidistant:
@@ -80,15 +69,11 @@ def board_centre(target: AprilGridTarget = TARGET) -> FloatArray:
     return np.array([width / 2.0, height / 2.0, 0.0])
 
 
-def look_at(eye: FloatArray, point: FloatArray, roll_rad: float) -> FloatArray:
+def _view_rotation(eye: FloatArray, point: FloatArray, roll_rad: float) -> FloatArray:
     """`world_from_cam` rotation: camera z from `eye` towards `point`, then rolled."""
-    z = point - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.array([0.0, 1.0, 0.0]))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    base = np.column_stack((x, y, z))
-    return base @ so3_exp(np.array([0.0, 0.0, roll_rad]))
+    base = look_at(eye, point, up=(0.0, 1.0, 0.0))[:3, :3]
+    rotation: FloatArray = base @ so3_exp(np.array([0.0, 0.0, roll_rad]))
+    return rotation
 
 
 def _random_view(
@@ -106,7 +91,7 @@ def _random_view(
     # Aim off-centre so the board lands in different parts of the image.
     aim = centre + np.array([rng.uniform(-0.25, 0.25), rng.uniform(-0.2, 0.2), 0.0])
     pose = np.eye(4)
-    pose[:3, :3] = look_at(eye, aim, rng.uniform(-0.6, 0.6))
+    pose[:3, :3] = _view_rotation(eye, aim, rng.uniform(-0.6, 0.6))
     pose[:3, 3] = eye
     return pose
 
@@ -178,7 +163,7 @@ def sweep_trajectory(
         aim = centre + np.array([rng.uniform(-0.12, 0.12), rng.uniform(-0.1, 0.1), 0.0])
         positions[i] = eye
         # world_from_body = world_from_cam @ cam_from_body (the lever arm is a few cm).
-        rotations[i] = look_at(eye, aim, roll) @ cam_from_imu[:3, :3]
+        rotations[i] = _view_rotation(eye, aim, roll) @ cam_from_imu[:3, :3]
     start = start_ns - int(2 * knot_interval_s * 1e9)
     return SplineTrajectory(
         start_ns=start,
@@ -243,3 +228,36 @@ def recording(
         accel_m_s2=samples.accel_m_s2,
         trajectory=trajectory,
     )
+
+
+def two_gyros(
+    seed: int, offset_s: float, duration_s: float = 20.0, duration1_s: float | None = None
+) -> tuple[npt.NDArray[np.int64], FloatArray, npt.NDArray[np.int64], FloatArray, FloatArray]:
+    """Two rigs' gyros on one hand-held sweep: rig 0 at 200 Hz on true time; rig 1 at 197 Hz
+    starting 1 s later for `duration1_s` (default `duration_s` - 2 s), rotated, on a clock
+    `offset_s` ahead.
+
+    Returns (stamps0 ns, gyro0 (N,3) rad/s, stamps1 ns, gyro1 (M,3) rad/s in rig 1's frame,
+    the true `imu1_from_imu0` rotation).
+    """
+    rng = np.random.default_rng(seed)
+    trajectory = sweep_trajectory(rng, default_cam_from_imu(), duration_s=duration_s + 5.0)
+    true0 = START_NS + np.arange(int(duration_s * 200)) * 5_000_000
+    imu0 = simulate_imu(trajectory, true0, noise=default_imu_noise(200.0), rng=rng)
+    true1 = (
+        START_NS
+        + 1_000_000_000
+        + np.round(np.arange(int((duration1_s or duration_s - 2.0) * 197)) / 197.0 * 1e9).astype(
+            np.int64
+        )
+    )
+    imu1 = simulate_imu(
+        trajectory,
+        true1,
+        noise=default_imu_noise(197.0),
+        rng=rng,
+        gyro_bias0_rad_s=(0.01, 0.0, -0.01),
+    )
+    imu1_from_imu0 = so3_exp(rng.normal(0.0, 1.0, 3))
+    stamps1 = true1 + round(offset_s * 1e9)
+    return true0, imu0.gyro_rad_s, stamps1, imu1.gyro_rad_s @ imu1_from_imu0.T, imu1_from_imu0
