@@ -57,7 +57,7 @@ from postproc.sfm.stage import SfmOptions, run
 from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose
 from shared.trajectory import Trajectory, ate
-from tests.postproc.sfm.slam_like import (
+from sim.slam_like import (
     SlamLikeSession,
     write_merge_like,
     write_slam_like_survey,

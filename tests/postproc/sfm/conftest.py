@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from .slam_like import SlamLikeSession, write_slam_like_survey
+from sim.slam_like import SlamLikeSession, write_slam_like_survey
 
 
 @pytest.fixture(scope="session")

@@ -16,8 +16,7 @@ from shared.errors import StageError
 from shared.formats.tum import read_tum
 from shared.geometry import make_pose, so3_exp
 from shared.trajectory import ate
-
-from .slam_like import SlamLikeSession, write_merge_like
+from sim.slam_like import SlamLikeSession, write_merge_like
 
 
 def test_fit_world_from_session_recovers_a_rigid_transform() -> None:

@@ -21,8 +21,7 @@ from postproc.sfm.stage import SfmOptions, prior_sigmas_m, run
 from shared.errors import InputError, OutputExistsError, StageError
 from shared.formats.tum import read_tum
 from shared.trajectory import Trajectory, ate
-
-from .slam_like import SlamLikeSession, write_merge_like
+from sim.slam_like import SlamLikeSession, write_merge_like
 
 REPO = Path(__file__).resolve().parents[3]
 FAST = ["--max-features", "512", "--threads", "2"]

@@ -24,8 +24,7 @@ from postproc.sfm.features import (
 from postproc.sfm.stage import SfmOptions, run
 from shared.errors import StageError
 from shared.formats.tum import read_tum
-
-from .slam_like import SlamLikeSession, write_merge_like
+from sim.slam_like import SlamLikeSession, write_merge_like
 
 MapFn = Callable[[Callable[[Any], Any], list[Any]], list[Any]]
 

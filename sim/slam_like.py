@@ -1,6 +1,6 @@
 """SLAM-like result folders from the survey simulator, with known truth (tests and bench).
 
-SLAM is not built yet, so the SfM stage is fed what it will produce: keyframes picked
+The SfM stage is fed what SLAM produces, without running SLAM: keyframes picked
 from the simulated camera at about `keyframe_hz`, rendered as recorded (distorted), with
 camera poses `T_S_C` in a gravity-aligned session frame `S` whose origin is the first
 keyframe, perturbed by a drift that grows along the path (a random walk in position
