@@ -184,6 +184,7 @@ def summary(project_path: Path, steps: dict[str, tuple[int, float]]) -> tuple[st
     """The table of steps and stages (time, error against truth) and whether all succeeded."""
     from postproc.pipeline.project import load_project
     from postproc.pipeline.runner import STAMP_NAME, plan
+    from postproc.pipeline.stages import RunFolders
 
     project = load_project(project_path)
     evaluation: dict = {}
@@ -207,7 +208,7 @@ def summary(project_path: Path, steps: dict[str, tuple[int, float]]) -> tuple[st
     width = [max(len(r[i]) for r in rows) for i in range(5)]
     text = "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width, strict=True)) for r in rows)
     text += f"\nreport: {project.output / 'report.html'}"
-    mesh = project.output / "dense" / "mesh.ply"
+    mesh = RunFolders(project.output).dense().mesh
     text += f"\nmesh: {mesh if mesh.is_file() else 'not made'}"
     return text, ok
 

@@ -74,15 +74,17 @@ class RunCoverage:
 
 def _surface(out: Path) -> tuple[SurfaceSamples, tuple[Any, Any] | None, str] | None:
     from postproc.pipeline.decimate import decimate_mesh, subsample_points
+    from postproc.pipeline.stages import RunFolders
     from shared.formats.ply import read_ply
 
-    mesh_path, fused_path = out / "dense" / "mesh.ply", out / "dense" / "fused.ply"
+    dense = RunFolders(out).dense()
+    mesh_path, fused_path = dense.mesh, dense.fused
     if mesh_path.is_file():
         ply = read_ply(mesh_path)
         if ply.faces is not None and len(ply.faces):
             small = decimate_mesh(ply.vertices, ply.faces, None, max_triangles=COVERAGE_TRIANGLES)
             surface = surface_from_mesh(small.vertices_m, small.faces)
-            return surface, (small.vertices_m, small.faces), "dense/mesh.ply"
+            return surface, (small.vertices_m, small.faces), _relative(mesh_path, out)
     if fused_path.is_file():
         ply = read_ply(fused_path)
         keep = subsample_points(len(ply.vertices), max_points=COVERAGE_POINTS)
@@ -91,8 +93,13 @@ def _surface(out: Path) -> tuple[SurfaceSamples, tuple[Any, Any] | None, str] | 
         extent = float(np.max(np.ptp(points, axis=0))) if len(points) else 1.0
         # Each kept point stands for an equal share of a surface about extent^2 / 2.
         spacing = extent / np.sqrt(max(2 * len(points), 1))
-        return surface_from_points(points, normals, spacing_m=spacing), None, "dense/fused.ply"
+        surface = surface_from_points(points, normals, spacing_m=spacing)
+        return surface, None, _relative(fused_path, out)
     return None
+
+
+def _relative(path: Path, out: Path) -> str:
+    return path.relative_to(out).as_posix()
 
 
 def compute_run_coverage(
@@ -100,6 +107,7 @@ def compute_run_coverage(
 ) -> RunCoverage:
     """Coverage of the run in `out` per session and merged (empty maps with notes when
     the dense stage or the keyframes are not there)."""
+    from postproc.pipeline.stages import RunFolders
     from postproc.pipeline.viewer import read_session_paths, read_targets
     from shared.calibration.kalibr import read_camchain
 
@@ -108,7 +116,11 @@ def compute_run_coverage(
     result.targets = {t.name: t.world_from_target for t in read_targets(out)}
     found = _surface(out)
     if found is None:
-        result.notes.append("no dense/mesh.ply or dense/fused.ply (dense stage not run)")
+        dense = RunFolders(out).dense()
+        result.notes.append(
+            f"no {_relative(dense.mesh, out)} or {_relative(dense.fused, out)} "
+            "(dense stage not run)"
+        )
         return result
     surface, occluder, result.surface_source = found
     paths, notes = read_session_paths(out, session_names)
@@ -118,7 +130,7 @@ def compute_run_coverage(
         if not path.in_world:
             result.notes.append(f"{path.name}: left out (keyframes not in the world frame)")
             continue
-        camchain = out / "sessions" / path.name / "calib" / "camchain.yaml"
+        camchain = RunFolders(out).slam(path.name).camchain
         try:
             camera = read_camchain(camchain)[0].camera
         except Exception as error:  # a report shows what it can

@@ -129,7 +129,9 @@ def camera_to_true_ns(project: Any, session: Any, entry: dict[str, Any], shift_n
         return shift_ns
     import yaml
 
-    path = project.output / "imports" / session.name / "session.yaml"
+    from postproc.pipeline.stages import RunFolders
+
+    path = RunFolders(project.output).imported(session.name).session_yaml
     try:
         document = yaml.safe_load(path.read_text(encoding="utf-8"))
         creation_ns = int(document["clocks"]["gopro"]["creation_time_ns"])
@@ -146,6 +148,7 @@ def _rms(values: FloatArray) -> float:
 
 def evaluate_project(project: Any) -> dict[str, Any]:
     """Every error measurable from the finished outputs of `project` (a dict for JSON)."""
+    from postproc.pipeline.stages import RunFolders
     from shared.formats.tum import read_tum
     from shared.geometry import invert_pose
 
@@ -155,7 +158,7 @@ def evaluate_project(project: Any) -> dict[str, Any]:
     shift_ns = round(float(truth["camera"]["timeshift_cam_imu_s"]) * 1e9)
     cam_from_imu = np.asarray(truth["camera"]["cam_from_imu"], dtype=np.float64)
     imu_from_cam = invert_pose(cam_from_imu)
-    out = project.output
+    folders = RunFolders(project.output)
     result: dict[str, Any] = {"truth": str(project.truth), "sessions": {}}
     cam_truth: dict[str, tuple[npt.NDArray[np.int64], Any]] = {}
     for index, session in enumerate(project.sessions):
@@ -172,17 +175,17 @@ def evaluate_project(project: Any) -> dict[str, Any]:
             continue
         cam_truth[session.name] = (to_true_ns, body)
         errors: dict[str, Any] = {"truth_session": entry["name"]}
-        slam_dir = out / "sessions" / session.name
-        if (slam_dir / "trajectory.tum").is_file():
-            estimate = read_tum(slam_dir / "trajectory.tum")
+        slam = folders.slam(session.name)
+        if slam.trajectory.is_file():
+            estimate = read_tum(slam.trajectory)
             poses, inside = _positions_at(body, estimate.stamps_ns + to_true_ns)
             if np.count_nonzero(inside) >= 3:
                 _, e = _rigid(estimate.positions[inside], poses[:, :3, 3])
                 errors["slam_ate_m"] = _rms(e)
                 errors["slam_poses"] = int(np.count_nonzero(inside))
-        depth_dir = slam_dir / "depth"
-        if (depth_dir / "sync.json").is_file():
-            sync = json.loads((depth_dir / "sync.json").read_text(encoding="utf-8"))
+        depth = folders.depth(session.name)
+        if depth.sync.is_file():
+            sync = json.loads(depth.sync.read_text(encoding="utf-8"))
             dc = entry["clocks"]["dive_computer"]
             ref_cam_s = float(sync["reference_time_s"])
             # dive time - camera time = (dive - true) + (true - camera), at the reference.
@@ -193,15 +196,15 @@ def evaluate_project(project: Any) -> dict[str, Any]:
                 + dc["drift_ppm"] * 1e-6 * (true_s - dc["reference_ns"] * 1e-9)
             )
             errors["depth_time_offset_error_s"] = float(sync["time_offset_s"]) - true_offset
-            for name in ("trajectory_world_fused.tum", "trajectory_world.tum"):
-                if (depth_dir / name).is_file():
-                    world = read_tum(depth_dir / name)
+            for world_path in (depth.trajectory_world_fused, depth.trajectory_world):
+                if world_path.is_file():
+                    world = read_tum(world_path)
                     poses, inside = _positions_at(body, world.stamps_ns + to_true_ns)
                     dz = world.positions[inside, 2] - poses[:, 2, 3]
                     if dz.size:
                         errors["depth_offset_error_m"] = float(np.mean(dz))
                         errors["depth_z_rms_m"] = _rms(dz)
-                        errors["depth_trajectory"] = name
+                        errors["depth_trajectory"] = world_path.name
                     break
         result["sessions"][session.name] = errors
 
@@ -234,29 +237,24 @@ def evaluate_project(project: Any) -> dict[str, Any]:
         return T
 
     merge_T = keyframe_errors(
-        {s.name: out / "merge" / s.name / "keyframes_merged.tum" for s in project.sessions},
-        "merge",
+        {s.name: folders.merge().merged_keyframes(s.name) for s in project.sessions}, "merge"
     )
     sfm_T = keyframe_errors(
-        {
-            s.name: out / "sfm" / "sessions" / s.name / "keyframes_world.tum"
-            for s in project.sessions
-        },
-        "sfm",
+        {s.name: folders.sfm().session_keyframes_world(s.name) for s in project.sessions}, "sfm"
     )
     alignment = sfm_T if sfm_T is not None else merge_T
     keyframes = true_keyframes.get("sfm" if sfm_T is not None else "merge")
-    dense_dir = out / "dense"
-    for name in ("mesh.ply", "fused.ply"):
-        if (dense_dir / name).is_file() and alignment is not None:
+    dense = folders.dense()
+    for dense_path in (dense.mesh, dense.fused):
+        if dense_path.is_file() and alignment is not None:
             result["dense"] = evaluate_mesh(
-                dense_dir / name,
+                dense_path,
                 project.truth.parent / truth["world"]["mesh"],
                 alignment,
                 camera=truth_camera(truth),
                 world_from_cams=keyframes,
             )
-            result["dense"]["file"] = name
+            result["dense"]["file"] = dense_path.name
             break
     return result
 

@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from postproc.commands import calibrate as calibrate_command
 from postproc.commands import dense as dense_command
@@ -59,6 +59,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 RunFn = Callable[..., Path]
+_F = TypeVar("_F", bound=HandoffFolder)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -476,3 +477,44 @@ def check_output(stage: str, writes: type[HandoffFolder], out: Path) -> None:
     folder = writes(out)
     if not folder.is_complete():
         raise StageError(f"{stage}: finished without writing {folder.marker} in {out}")
+
+
+class RunFolders:
+    """The hand-off folders of a run's output folder, where the registry places them (the
+    report, the evaluation, the viewer and the coverage read a run through this)."""
+
+    def __init__(self, output: Path, stages: Mapping[str, Stage] | None = None) -> None:
+        self.output = Path(output)
+        self.stages = STAGES if stages is None else stages
+
+    def folder(self, stage: str, session: str | None = None) -> HandoffFolder:
+        """The folder `stage` writes (for `session`, for a session stage)."""
+        entry = self.stages[stage]
+        return entry.writes(entry.place(self.output, session))
+
+    def _typed(self, kind: type[_F], stage: str, session: str | None = None) -> _F:
+        folder = self.folder(stage, session)
+        if not isinstance(folder, kind):
+            raise TypeError(f"stage {stage} writes {type(folder).__name__}, not {kind.__name__}")
+        return folder
+
+    def calibration(self) -> CalibrationFolder:
+        return self._typed(CalibrationFolder, "calibrate")
+
+    def imported(self, session: str) -> SessionFolder:
+        return self._typed(SessionFolder, "import", session)
+
+    def slam(self, session: str) -> SlamFolder:
+        return self._typed(SlamFolder, "slam", session)
+
+    def depth(self, session: str) -> DepthFolder:
+        return self._typed(DepthFolder, "depth", session)
+
+    def merge(self) -> MergeFolder:
+        return self._typed(MergeFolder, "merge")
+
+    def sfm(self) -> SfmFolder:
+        return self._typed(SfmFolder, "sfm")
+
+    def dense(self) -> DenseFolder:
+        return self._typed(DenseFolder, "dense")

@@ -91,10 +91,13 @@ class ViewerScene:
 
 def keyframe_sources(out: Path, name: str) -> list[tuple[Path, bool]]:
     """Where a session's keyframe poses may be, best first, with "in the world frame"."""
+    from postproc.pipeline.stages import RunFolders
+
+    folders = RunFolders(out)
     return [
-        (out / "sfm" / "sessions" / name / "keyframes_world.tum", True),
-        (out / "merge" / name / "keyframes_merged.tum", True),
-        (out / "sessions" / name / "keyframes.tum", False),
+        (folders.sfm().session_keyframes_world(name), True),
+        (folders.merge().merged_keyframes(name), True),
+        (folders.slam(name).keyframes_tum, False),
     ]
 
 
@@ -131,9 +134,10 @@ def read_session_paths(out: Path, names: list[str]) -> tuple[list[SessionPath], 
 def read_targets(out: Path) -> list[TargetPlacement]:
     """The targets placed by the merge (`merge/targets.json`); extents from their YAMLs
     (0.5 m square when a YAML cannot be read)."""
+    from postproc.pipeline.stages import RunFolders
     from shared.calibration.kalibr import read_target_yaml
 
-    document_path = out / "merge" / "targets.json"
+    document_path = RunFolders(out).merge().targets
     try:
         document = json.loads(document_path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -171,7 +175,10 @@ def load_scene(
     from shared.formats.ply import read_ply
 
     scene = ViewerScene()
-    mesh_path, fused_path = out / "dense" / "mesh.ply", out / "dense" / "fused.ply"
+    from postproc.pipeline.stages import RunFolders
+
+    dense = RunFolders(out).dense()
+    mesh_path, fused_path = dense.mesh, dense.fused
     if mesh_path.is_file():
         try:
             ply = read_ply(mesh_path)
