@@ -13,10 +13,11 @@ stages: `features` (feature-level SLAM sequences: tracks and IMU, no images),
 folders rendered from the survey, for SfM: I/O) and `calibration` (AprilGrid board views,
 hand-held sweeps with IMU, two rigs' gyros).
 
-Layers: `sim` imports `shared` (and `features` the SLAM frontend's `FrameTracks` from
-`postproc.slam.types`, the data it stands in for); `field` imports `sim` for the
-simulated rig and `wreckmap-field sim`; `postproc` never imports `sim`; tests and bench
-do. A camera's pose towards a point is `shared.geometry.look_at`.
+Layers: `sim` imports `shared`; besides, `features` takes the SLAM frontend's
+`FrameTracks` from `postproc.slam.types` (the data it stands in for) and `survey` writes
+its GoPro-like MP4 with `field.gopro.writer` (imported inside that function). `field`
+imports `sim` for the simulated rig and `wreckmap-field sim`; `postproc` never imports
+`sim`; tests and bench do. A camera's pose towards a point is `shared.geometry.look_at`.
 
 Live sources call `SurveySimulator(options).render_frame(session, t_cam_ns)` for one image
 (deterministic noise), `world_from_cam` / `world_from_body` for the truth and `imu(session)`

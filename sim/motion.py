@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from shared.geometry import so3_exp
+from shared.geometry import look_at, so3_exp
 from sim.spline import SplineTrajectory
 
 FloatArray = npt.NDArray[np.float64]
@@ -154,11 +154,8 @@ def _smooth_noise(
 def look_rotation(forward_w: FloatArray) -> FloatArray:
     """(N,3,3) `world_from_cam` rotations with the camera z along `forward_w` and no roll
     (camera x horizontal, y pointing down as much as possible)."""
-    z = forward_w / np.linalg.norm(forward_w, axis=1, keepdims=True)
-    x = np.cross(z, np.array([0.0, 0.0, 1.0]))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    y = np.cross(z, x)
-    return np.stack((x, y, z), axis=2)
+    rotation: FloatArray = look_at(np.zeros(3), forward_w)[:, :3, :3]
+    return rotation
 
 
 def diver_trajectory(

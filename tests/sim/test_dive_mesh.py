@@ -7,7 +7,7 @@ import pytest
 
 from shared.clock import ClockModel
 from shared.errors import OutputExistsError
-from sim.dive import DiveComputerOptions, simulate_dive_profile, true_depth_m
+from sim.dive import DiveComputerOptions, log_depth, simulate_dive_profile, true_depth_m
 from sim.mesh import ply_bytes, scene_mesh, write_ply
 from sim.motion import builtin_route, diver_trajectory
 from sim.scene import WreckScene
@@ -49,6 +49,20 @@ def test_profile_is_a_dive_on_the_computer_clock(trajectory) -> None:  # type: i
     )
     # The computer's clock is about two hours behind, as its stamps show.
     assert abs(profile.start_s - (START_NS * 1e-9 - 7200 - 270)) < 120
+
+
+def test_the_computer_logs_noisy_depths_in_tenths_and_spikes_when_asked() -> None:
+    depth = np.linspace(0.0, 20.0, 2001)
+    quiet = log_depth(depth, np.random.default_rng(2), noise_m=0.05)
+    np.testing.assert_allclose(quiet * 10.0, np.round(quiet * 10.0), atol=1e-9)
+    assert quiet.min() >= 0.0
+    assert 0.03 < np.std(quiet - depth) < 0.07
+    # Spikes: every sample 1-5 m too deep; the noise is drawn first, as without spikes.
+    spiky = log_depth(depth, np.random.default_rng(2), noise_m=0.05, outlier_fraction=1.0)
+    excess = spiky - quiet
+    assert excess.min() > 0.9 and excess.max() < 5.1
+    none = log_depth(depth, np.random.default_rng(2), noise_m=0.05, outlier_fraction=0.0)
+    np.testing.assert_array_equal(none, quiet)
 
 
 def test_mesh_covers_the_scene_with_outward_normals(coarse_scene: WreckScene) -> None:

@@ -8,20 +8,9 @@ import pytest
 
 from shared.calibration.aprilgrid import OPENCV_CORNER_ORDER
 from shared.calibration.cameras import PinholeEquidistant, PinholeRadtan
+from shared.geometry import look_at
 from sim.render import Renderer, WaterModel
 from sim.scene import WreckScene
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack((x, np.cross(z, x), z))
-    pose[:3, 3] = eye
-    return pose
-
 
 RADTAN = PinholeRadtan(
     width=480, height=270, fx=250.0, fy=251.0, cx=243.0, cy=131.0, k1=-0.22, k2=0.05,

@@ -7,7 +7,8 @@ import pytest
 from scipy.interpolate import BSpline
 
 from shared.geometry import so3_exp, so3_log
-from sim.imu import GRAVITY_W_M_S2, ideal_imu, simulate_imu
+from shared.imu import ImuSamples
+from sim.imu import GRAVITY_W_M_S2, RandomBias, ideal_imu, simulate_imu
 from sim.motion import builtin_route, diver_trajectory
 from sim.spline import SplineTrajectory, bspline_basis_matrix
 from sim.survey import default_cam_from_imu, default_imu_noise
@@ -150,6 +151,40 @@ def test_imu_noise_has_the_kalibr_discrete_sigmas() -> None:
 def test_noise_without_rng_raises() -> None:
     with pytest.raises(ValueError, match="rng"):
         simulate_imu(random_spline(4), [START_NS], noise=default_imu_noise())
+    with pytest.raises(ValueError, match="RandomBias needs an rng"):
+        simulate_imu(random_spline(4), [START_NS], noise=None, gyro_bias0_rad_s=RandomBias(0.1))
+
+
+def test_random_initial_biases_and_a_walk_already_started() -> None:
+    trajectory = random_spline(6, seed=3)
+    stamps = START_NS + np.arange(400) * 5_000_000
+    ideal = simulate_imu(
+        trajectory, stamps, noise=None, rng=np.random.default_rng(1),
+        gyro_bias0_rad_s=RandomBias(0.003), accel_bias0_m_s2=RandomBias(0.05),
+    )  # fmt: skip
+    assert isinstance(ideal, ImuSamples)
+    # Without noise the biases stay put: random directions of the given norms.
+    assert np.allclose(np.linalg.norm(ideal.gyro_bias_rad_s, axis=1), 0.003)
+    assert np.allclose(np.linalg.norm(ideal.accel_bias_m_s2, axis=1), 0.05)
+    assert np.ptp(ideal.gyro_bias_rad_s, axis=0).max() == 0.0
+    assert not np.allclose(ideal.gyro_bias_rad_s[0] / 0.003, ideal.accel_bias_m_s2[0] / 0.05)
+    noise = default_imu_noise(200.0)
+    fresh = simulate_imu(
+        trajectory, stamps, noise=noise, rng=np.random.default_rng(1),
+        gyro_bias0_rad_s=RandomBias(0.003), accel_bias0_m_s2=RandomBias(0.05),
+    )  # fmt: skip
+    started = simulate_imu(
+        trajectory, stamps, noise=noise, rng=np.random.default_rng(1),
+        gyro_bias0_rad_s=RandomBias(0.003), accel_bias0_m_s2=RandomBias(0.05),
+        walk_before_first=True,
+    )  # fmt: skip
+    # The same draws: the first bias is the initial one, or one walk step past it.
+    np.testing.assert_array_equal(fresh.gyro_bias_rad_s[0], ideal.gyro_bias_rad_s[0])
+    step = started.gyro_bias_rad_s[0] - fresh.gyro_bias_rad_s[0]
+    assert 0.0 < np.linalg.norm(step) < 10 * noise.gyroscope_random_walk / np.sqrt(200.0)
+    np.testing.assert_allclose(
+        np.diff(started.gyro_bias_rad_s, axis=0)[1:], np.diff(fresh.gyro_bias_rad_s, axis=0)[1:]
+    )
 
 
 def test_diver_moves_like_a_diver() -> None:

@@ -13,6 +13,7 @@ import pytest
 
 from postproc.dense.colmap_io import write_known_pose_model
 from shared.calibration.cameras import PinholeRadtan
+from shared.geometry import look_at
 from sim.render import Renderer, WaterModel
 from sim.scene import WreckScene, build_wreck_scene
 
@@ -21,18 +22,6 @@ CAMERA = PinholeRadtan(
     width=256, height=192, fx=150.0, fy=150.0, cx=129.0, cy=95.0, k1=-0.12, k2=0.02,
     p1=2e-4, p2=-1e-4,
 )  # fmt: skip
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """`T_W_C` of an OpenCV camera at `eye` looking at `target` (world z up)."""
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack((x, np.cross(z, x), z))
-    pose[:3, 3] = eye
-    return pose
 
 
 def hull_poses(count: int, *, step_m: float = 0.3) -> list[np.ndarray]:

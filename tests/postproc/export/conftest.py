@@ -14,6 +14,7 @@ import pytest
 
 from postproc.dense.colmap_io import write_known_pose_model
 from shared.formats.ply import PlyData, write_ply
+from shared.geometry import look_at
 
 WIDTH, HEIGHT = 256, 192
 PARAMS = [150.0, 152.0, 129.0, 95.0, -0.12, 0.02, 2e-4, -1e-4]  # OPENCV fx fy cx cy k1 k2 p1 p2
@@ -22,17 +23,6 @@ SEABED_Z = -12.0
 BOX_MIN, BOX_MAX = np.array([-1.0, -0.25]), np.array([1.0, 0.25])
 BOX_TOP_Z = SEABED_Z + 0.3
 TARGET_M = np.array([1.5, 0.8, SEABED_Z])
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """`T_W_C` of an OpenCV camera at `eye` looking at `target`, image top towards `up`."""
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack((x, np.cross(z, x), z))
-    pose[:3, 3] = eye
-    return pose
 
 
 def heightfield_mesh(step_m: float = 0.05) -> PlyData:
