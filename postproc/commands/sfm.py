@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from postproc.pipeline.options import Flag, add_flags, options_from_args
+
 EXAMPLE = """\
 example:
   wreckmap-post sfm results/dive1/slam --out results/dive1/sfm
@@ -22,6 +24,20 @@ No network access: no vocabulary tree or model is ever downloaded.
 """
 
 
+# The flags of SfmOptions' fields (names kept from the first command line).
+SFM_FLAGS = [
+    Flag(field="features.max_num_features", flag="--max-features"),
+    Flag(field="features.max_image_size_px", flag="--max-image-size", metavar="PX"),
+    Flag(field="pairs.sequential_neighbours", flag="--sequential"),
+    Flag(field="pairs.spatial_neighbours", flag="--spatial"),
+    Flag(field="pairs.spatial_radius_m", flag="--spatial-radius", metavar="METRES"),
+    Flag(field="prior_sigma_m", flag="--prior-sigma", metavar="METRES"),
+    Flag(field="refine.mapper", flag="--mapper"),
+    Flag(field="refine.refine_intrinsics", flag="--refine-intrinsics"),
+    Flag(field="features.num_threads", flag="--threads", also=("refine.num_threads",)),
+]
+
+
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "sfm",
@@ -35,83 +51,22 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "inputs", nargs="+", type=Path, metavar="SLAM_OR_MERGE_DIR", help="input folders"
     )
     parser.add_argument("--out", required=True, type=Path, help="output folder")
-    parser.add_argument(
-        "--max-features", type=int, help="SIFT features per image (default 512)"
-    )
-    parser.add_argument(
-        "--max-image-size",
-        type=int,
-        metavar="PX",
-        help="longer image side for feature extraction, px (default 640)",
-    )
-    parser.add_argument(
-        "--sequential", type=int, help="sequential neighbours per keyframe (default 3)"
-    )
-    parser.add_argument(
-        "--spatial", type=int, help="spatial/loop partners per keyframe (default 4)"
-    )
-    parser.add_argument(
-        "--spatial-radius",
-        type=float,
-        metavar="METRES",
-        help="distance between viewed points of spatial partners, m (default 1.5)",
-    )
-    parser.add_argument(
-        "--prior-sigma",
-        type=float,
-        metavar="METRES",
-        help="fixed one-sigma error of the position priors (default: derived from drift)",
-    )
-    parser.add_argument(
-        "--mapper",
-        choices=("auto", "prior", "incremental"),
-        default="auto",
-        help="prior: triangulate + BA from the priors; incremental: COLMAP's mapper with "
-        "priors; auto: prior, incremental if too few keyframes end up in the model",
-    )
-    parser.add_argument("--refine-intrinsics", action="store_true", help="adjust the cameras too")
-    parser.add_argument("--threads", type=int, default=-1, help="worker threads (-1: all cores)")
+    # The stage's options: type, default, choices and help from SfmOptions itself.
+    add_flags(parser, _options_type(), SFM_FLAGS)
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     parser.set_defaults(handler=_sfm)
 
 
-def _sfm(args: argparse.Namespace) -> int:
-    from postproc.sfm.features import FeatureOptions
-    from postproc.sfm.pairs import PairOptions
-    from postproc.sfm.refine import RefineOptions
-    from postproc.sfm.stage import SfmOptions, run
-    from shared.errors import InputError
+def _options_type() -> type:
+    from postproc.sfm.stage import SfmOptions
 
-    try:
-        options = SfmOptions(
-            features=FeatureOptions(
-                **_given(
-                    max_num_features=args.max_features,
-                    max_image_size_px=args.max_image_size,
-                    num_threads=args.threads,
-                )
-            ),
-            pairs=PairOptions(
-                **_given(
-                    sequential_neighbours=args.sequential,
-                    spatial_neighbours=args.spatial,
-                    spatial_radius_m=args.spatial_radius,
-                )
-            ),
-            refine=RefineOptions(
-                mapper=args.mapper,
-                refine_intrinsics=args.refine_intrinsics,
-                num_threads=args.threads,
-            ),
-            prior_sigma_m=args.prior_sigma,
-        )
-    except ValueError as error:
-        raise InputError(f"sfm: {error}") from error
+    return SfmOptions
+
+
+def _sfm(args: argparse.Namespace) -> int:
+    from postproc.sfm.stage import run
+
+    options = options_from_args(_options_type(), args, SFM_FLAGS)
     model = run(options, args.inputs, args.out, overwrite=args.overwrite)
     print(model)
     return 0
-
-
-def _given(**options: object) -> dict[str, object]:
-    """The options given on the command line (None: keep the stage's default)."""
-    return {name: value for name, value in options.items() if value is not None}

@@ -81,6 +81,20 @@ def field_docs(cls: type) -> dict[str, str]:
     for key in [k for k in docs if "/" in k]:
         for n in key.split("/"):
             docs.setdefault(n.strip(), docs[key])
+    # An entry ends where the next one starts inside its paragraph.
+    for key, text in docs.items():
+        for follows in re.finditer(r"[.;] ([A-Za-z_]\w*): ", text):
+            if follows.group(1) in names:
+                docs[key] = text[: follows.start() + 1]
+                break
+    # An entry inside a paragraph: "... model). refine_intrinsics: also adjust ... ."
+    joined = " ".join(line.strip() for line in lines)
+    for name in names - set(docs):
+        inline = re.search(
+            rf"(?:^|[.;] ){name}: (.*?)(?:[.;] [A-Za-z_]\w*: |\.\s*$|\.\s{{2,}}|$)", joined
+        )
+        if inline:
+            docs[name] = inline.group(1).strip()
     for f in dataclasses.fields(cls):
         if "help" in f.metadata:
             docs[f.name] = str(f.metadata["help"])
@@ -122,7 +136,9 @@ class Flag:
     flag: the flag (`--max-offset`); None: `--` and the field name in kebab-case.
     negate: a boolean field that defaults to true, turned off by this flag (`--no-fuse`).
     zero_is_none: the value 0 means None (`--clock-window 0` turns the prior off).
-    metavar: shown in the help instead of the type.
+    metavar: shown in the help instead of the field's name.
+    also: other fields (same type and default) that take the same value (`--threads`
+        sets the threads of every step).
     """
 
     field: str
@@ -130,6 +146,7 @@ class Flag:
     negate: bool = False
     zero_is_none: bool = False
     metavar: str | None = None
+    also: tuple[str, ...] = ()
 
     @property
     def name(self) -> str:
@@ -160,6 +177,11 @@ def add_flags(parser: argparse.ArgumentParser, cls: type, flags: list[Flag]) -> 
     """Add `flags` to `parser`, their type, default, choices and help from `cls`."""
     for flag in flags:
         owner, f, hint, default = _resolve(cls, flag.field)
+        for other in flag.also:
+            if _resolve(cls, other)[2:] != (hint, default):
+                raise ValueError(
+                    f"{flag.name}: {other} differs from {flag.field} in type or default"
+                )
         text = field_docs(owner)[f.name].rstrip(".") or flag.field
         value_hint, optional = _strip_optional(hint)
         if value_hint is bool:
@@ -194,18 +216,35 @@ def add_flags(parser: argparse.ArgumentParser, cls: type, flags: list[Flag]) -> 
 
 def options_from_args(cls: type, args: argparse.Namespace, flags: list[Flag]) -> Any:
     """The options dataclass `cls` with the values of `flags` parsed into `args` (every
-    other field at its default)."""
-    options = cls()
+    other field at its default; each dataclass built through its constructor, so its
+    own checks run). Raises InputError naming the flag for a value the class refuses."""
+    values: dict[str, Any] = {}
     for flag in flags:
         value = getattr(args, flag.dest)
         if flag.zero_is_none and value == 0:
             value = None
-        *path, name = flag.field.split(".")
-        owner = options
-        for part in path:
-            owner = getattr(owner, part)
-        setattr(owner, name, value)
-    return options
+        for name in (flag.field, *flag.also):
+            values[name] = value
+    try:
+        return _build(cls, values)
+    except (TypeError, ValueError) as error:
+        raise InputError(f"{cls.__name__}: {error}") from None
+
+
+def _build(cls: type, values: dict[str, Any]) -> Any:
+    """`cls(**...)` from dotted field names (nested dataclasses built the same way)."""
+    top: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {}
+    for name, value in values.items():
+        head, _, rest = name.partition(".")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            top[head] = value
+    hints = typing.get_type_hints(cls)
+    for head, inner in nested.items():
+        top[head] = _build(hints[head], inner)
+    return cls(**top)
 
 
 # ------------------------------------------------------------------------------ example
