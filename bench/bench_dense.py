@@ -153,9 +153,7 @@ def main() -> None:
     _ = sim.scene
     poses = [all_poses[i] for i in keys]
     names = [f"{int(stamps[i])}.png" for i in keys]
-    reuse = (sfm_dir / "sparse").exists() and all(
-        (sfm_dir / "images" / n).is_file() for n in names
-    )
+    reuse = (sfm_dir / "sparse").exists() and all((sfm_dir / "images" / n).is_file() for n in names)
     (sfm_dir / "images").mkdir(parents=True, exist_ok=True)
     if not reuse:
         depths = []
