@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from postproc.pipeline.options import Flag, add_flags, options_from_args
+
 EXAMPLE = """\
 example:
   wreckmap-post merge results/dive1/slam results/dive2/slam \\
@@ -29,6 +31,23 @@ with "placed": false and the evidence; it is never merged on a guess.
 """
 
 
+# The flags of MergeOptions' fields (names kept from the first command line).
+MERGE_FLAGS = [
+    Flag(field="natural_features", flag="--natural-features", off_flag="--no-natural-features"),
+    Flag(field="reference", metavar="NAME"),
+    Flag(field="method"),
+    Flag(field="dof"),
+    Flag(field="depth_fused", flag="--depth-fused", off_flag="--no-depth-fused"),
+    Flag(field="min_tags"),
+    Flag(field="rotation_mean"),
+    Flag(field="outlier_rule"),
+    Flag(field="drift_weighting", flag="--no-drift-weighting", negate=True),
+    Flag(field="tilt_sigma_deg"),
+    Flag(field="camera"),
+    Flag(field="plot", flag="--no-plot", negate=True),
+]
+
+
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "merge",
@@ -49,104 +68,23 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="Kalibr AprilGrid YAMLs (with tagIdOffset for a second grid); optional with "
         "natural features",
     )
-    features = parser.add_mutually_exclusive_group()
-    features.add_argument(
-        "--no-natural-features",
-        action="store_true",
-        help="targets only, placed session by session (no matching through the wreck itself)",
-    )
-    features.add_argument(
-        "--natural-features",
-        action="store_true",
-        help="always match through the wreck and estimate jointly with the targets (default: "
-        "only when the targets leave a session unplaced or none are given)",
-    )
     parser.add_argument("--out", required=True, type=Path, help="output folder")
-    parser.add_argument(
-        "--reference", metavar="NAME", help="session (folder name) that defines W (default: first)"
-    )
-    parser.add_argument(
-        "--method",
-        choices=("ours", "paper"),
-        default="ours",
-        help="ours: whole-grid PnP, robust SE(3) mean, weighted alignment; "
-        "paper: per-tag poses, one-sigma rejection, Euler means",
-    )
-    parser.add_argument(
-        "--dof",
-        choices=("auto", "4", "6"),
-        default="auto",
-        help="alignment degrees of freedom (auto: 4 for depth-fused sessions, else 6)",
-    )
-    fused = parser.add_mutually_exclusive_group()
-    fused.add_argument(
-        "--depth-fused",
-        dest="depth_fused",
-        action="store_true",
-        default=None,
-        help="require the depth stage's world trajectories (default: use them if all have one)",
-    )
-    fused.add_argument(
-        "--no-depth-fused",
-        dest="depth_fused",
-        action="store_false",
-        help="ignore depth stage outputs",
-    )
-    parser.add_argument(
-        "--min-tags", type=int, default=2, help="fewest tags of a target in a keyframe (default 2)"
-    )
-    parser.add_argument(
-        "--rotation-mean",
-        choices=("chordal", "quaternion"),
-        default="chordal",
-        help="rotation averaging (default: chordal L2)",
-    )
-    parser.add_argument(
-        "--outlier-rule",
-        choices=("mad", "chi2"),
-        default="mad",
-        help="outlier rejection of observations (default: median/MAD)",
-    )
-    parser.add_argument(
-        "--no-drift-weighting",
-        action="store_true",
-        help="average a target's passes equally instead of leaning on the passes nearest the "
-        "session start (drift weighting, the default, places the session frame best; equal "
-        "weights overlay the sessions best at the targets)",
-    )
-    parser.add_argument(
-        "--tilt-sigma-deg",
-        type=float,
-        default=None,
-        help="roll/pitch error (1-sigma, deg) of each session's gravity alignment: fit 6 DoF "
-        "with that prior on the relative tilt instead of 4 DoF (default: 4 DoF when "
-        "depth-fused)",
-    )
-    parser.add_argument("--camera", default="cam0", help="camchain entry of the keyframes")
-    parser.add_argument("--no-plot", action="store_true", help="skip the PNG views")
+    # The stage's options: type, default, choices and help from MergeOptions itself.
+    add_flags(parser, _options_type(), MERGE_FLAGS)
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     parser.set_defaults(handler=_merge)
 
 
-def _merge(args: argparse.Namespace) -> int:
-    from postproc.merge.stage import MergeOptions, run
+def _options_type() -> type:
+    from postproc.merge.stage import MergeOptions
 
-    options = MergeOptions(
-        method=args.method,
-        reference=args.reference,
-        dof="auto" if args.dof == "auto" else int(args.dof),
-        depth_fused=args.depth_fused,
-        min_tags=args.min_tags,
-        rotation_mean=args.rotation_mean,
-        outlier_rule=args.outlier_rule,
-        drift_weighting=not args.no_drift_weighting,
-        tilt_sigma_deg=args.tilt_sigma_deg,
-        natural_features=(
-            False if args.no_natural_features else True if args.natural_features else "auto"
-        ),
-        camera=args.camera,
-        plot=not args.no_plot,
-    )
+    return MergeOptions
+
+
+def _merge(args: argparse.Namespace) -> int:
+    from postproc.merge.stage import run
+
+    options = options_from_args(_options_type(), args, MERGE_FLAGS)
     path = run(options, args.slam_dirs, args.targets, args.out, overwrite=args.overwrite)
     print(path)
     return 0

@@ -139,6 +139,8 @@ class Flag:
     metavar: shown in the help instead of the field's name.
     also: other fields (same type and default) that take the same value (`--threads`
         sets the threads of every step).
+    off_flag: a field that is true, false or a third value by default (None, "auto"):
+        `flag` sets it true, `off_flag` false, neither leaves the default.
     """
 
     field: str
@@ -147,6 +149,7 @@ class Flag:
     zero_is_none: bool = False
     metavar: str | None = None
     also: tuple[str, ...] = ()
+    off_flag: str | None = None
 
     @property
     def name(self) -> str:
@@ -184,6 +187,18 @@ def add_flags(parser: argparse.ArgumentParser, cls: type, flags: list[Flag]) -> 
                 )
         text = field_docs(owner)[f.name].rstrip(".") or flag.field
         value_hint, optional = _strip_optional(hint)
+        if flag.off_flag is not None:
+            group = parser.add_mutually_exclusive_group()
+            shown = "none" if default is None else default
+            group.add_argument(
+                flag.name, dest=flag.dest, action="store_const", const=True, default=default,
+                help=f"{text} (default: {shown})",
+            )  # fmt: skip
+            group.add_argument(
+                flag.off_flag, dest=flag.dest, action="store_const", const=False,
+                help=f"turn off: {text}",
+            )  # fmt: skip
+            continue
         if value_hint is bool:
             if flag.negate != bool(default):
                 raise ValueError(f"{flag.name}: negate must match {flag.field}'s default")
@@ -203,7 +218,10 @@ def add_flags(parser: argparse.ArgumentParser, cls: type, flags: list[Flag]) -> 
             extra += "; 0: none"
         kwargs: dict[str, Any] = {"dest": flag.dest, "default": default, "help": text + extra}
         if choices is not None:
-            kwargs["choices"] = tuple(str(c) for c in choices)
+            # Literal values given as text on the command line (`--dof 4` is the int 4).
+            by_text = {str(c): c for c in choices}
+            kwargs["choices"] = choices
+            kwargs["type"] = lambda text, by_text=by_text: by_text.get(text, text)
         elif value_hint in (int, float, str, Path):
             kwargs["type"] = value_hint
         else:

@@ -155,3 +155,38 @@ def test_options_command_prints_and_rewrites_the_example(tmp_path: Path) -> None
     )
     assert done.returncode == 0 and "updated" in done.stdout
     assert stale.read_text(encoding="utf-8") == EXAMPLE.read_text(encoding="utf-8")
+
+
+def test_the_merge_command_keeps_its_flags_and_defaults() -> None:
+    from postproc.commands.merge import MERGE_FLAGS, _options_type
+
+    merge_options = _options_type()
+    parser = argparse.ArgumentParser()
+    add_flags(parser, merge_options, MERGE_FLAGS)
+
+    def parse(*argv: str) -> object:
+        return options_from_args(merge_options, parser.parse_args(list(argv)), MERGE_FLAGS)
+
+    assert parse() == merge_options()
+    options = parse("--dof", "4", "--no-natural-features", "--depth-fused", "--no-plot",
+                    "--no-drift-weighting", "--tilt-sigma-deg", "0.05", "--reference", "dive2",
+                    "--method", "paper", "--min-tags", "3", "--camera", "cam1")  # fmt: skip
+    assert options == merge_options(
+        dof=4,
+        natural_features=False,
+        depth_fused=True,
+        plot=False,
+        drift_weighting=False,
+        tilt_sigma_deg=0.05,
+        reference="dive2",
+        method="paper",
+        min_tags=3,
+        camera="cam1",
+    )
+    assert parse("--natural-features", "--no-depth-fused") == merge_options(
+        natural_features=True, depth_fused=False
+    )
+    with pytest.raises(SystemExit):  # one or the other, never both
+        parse("--natural-features", "--no-natural-features")
+    with pytest.raises(SystemExit):
+        parse("--dof", "5")
