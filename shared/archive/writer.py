@@ -25,12 +25,15 @@ Our own record writer (`engine="wreckmap"`, `_OwnRecords` on
 `shared.archive.mcap_records`) is kept beside it because it is measurably
 cheaper: it packs each message straight into one bytearray per chunk, where
 mcap builds a Message object per message and copies each byte through two
-BytesIO buffers. bench/bench_archive.py measures both in one run (load
-average about 10 on 2 cores, so the absolute rates are low, the ratios hold):
-IMU messages 2.0x faster with ours, 200 kB video packets 1.14x (zstd) and
-1.21x (none); on the recorder's own stream (two 8 Mb/s cameras, 400 Hz IMU,
-1 MiB chunks, fsync every 0.5 s) the writer costs 1.8 % of one core with ours
-and 2.4 % with mcap, both far inside the recorder's 10 % budget. So, per use:
+BytesIO buffers. bench/bench_archive.py measures both in one run (two runs
+at load average 10-12 on 2 cores, so the absolute rates are low, the ratios
+hold): IMU messages 2.0x faster with ours; 200 kB video packets about even
+with zstd (0.88x and 1.14x), 1.21x faster with ours uncompressed; on the
+recorder's own stream (two 8 Mb/s cameras, 400 Hz IMU, 1 MiB chunks, fsync
+every 0.5 s) the writer costs 1.8 % of one core with ours and 2.1-2.4 % with
+mcap, both far inside the recorder's 10 % budget (bench_record.py, both
+recorders side by side at load 9-12: 13.3-13.9 % on mcap, 12.0 % on ours,
+the rest of that figure being the load's). So, per use:
 the recorder, recover, simulation and export use the default, the mcap
 package; the GoPro importer, a bulk copy whose goal is a speed relative to a
 plain file copy, asks for "wreckmap" (its import ran 1.30x longer on mcap:
