@@ -31,9 +31,11 @@ hold): IMU messages 2.0x faster with ours; 200 kB video packets about even
 with zstd (0.88x and 1.14x), 1.21x faster with ours uncompressed; on the
 recorder's own stream (two 8 Mb/s cameras, 400 Hz IMU, 1 MiB chunks, fsync
 every 0.5 s) the writer costs 1.8 % of one core with ours and 2.1-2.4 % with
-mcap, both far inside the recorder's 10 % budget (bench_record.py, both
-recorders side by side at load 9-12: 13.3-13.9 % on mcap, 12.0 % on ours,
-the rest of that figure being the load's). So, per use:
+mcap, a small part of the recorder's 10 % budget (bench_record.py, both
+recorders side by side at load 9-12, two runs: 13.9 and 13.3 % of a core on
+mcap, 12.0 and 12.0 % on ours; the same record writer as before this change
+gives the 12.0 %, so that load lifts the whole figure past 10 % whichever
+writer is used). So, per use:
 the recorder, recover, simulation and export use the default, the mcap
 package; the GoPro importer, a bulk copy whose goal is a speed relative to a
 plain file copy, asks for "wreckmap" (its import ran 1.30x longer on mcap:
