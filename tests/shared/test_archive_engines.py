@@ -380,7 +380,8 @@ def test_mcap_ros2_support_decodes_our_archive_from_its_own_schemas(
 def test_the_mcap_package_cannot_salvage_a_truncated_recording(tmp_path: Path) -> None:
     """Why the salvage path stays ours: with the footer and summary missing, mcap 1.6's
     readers give back nothing (in log-time order) or stop at the cut with an error, and a
-    damaged chunk ends the read; ours returns every complete chunk and goes past it."""
+    damaged chunk ends the read; ours returns every complete chunk and goes past it.
+    When an mcap release can do this, this test fails: then our salvage path can go."""
     messages = session(6)
     path = tmp_path / "rec.mcap"
     write(path, messages, "mcap", chunk_size=3000)
