@@ -148,7 +148,9 @@ def scene_mesh(scene: WreckScene, *, cell_m: float = 0.25) -> TruthMesh:
 
 
 def _ply(mesh: TruthMesh) -> PlyData:
-    return PlyData(vertices=mesh.vertices, colors=mesh.colors, faces=mesh.triangles)
+    return PlyData(
+        vertices=mesh.vertices, colors=mesh.colors, faces=mesh.triangles.astype(np.int64)
+    )
 
 
 def ply_bytes(mesh: TruthMesh) -> bytes:

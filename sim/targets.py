@@ -12,10 +12,11 @@ and `calib/camchain.yaml`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
+from typing import Protocol, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -52,8 +53,12 @@ def _texture(target: AprilGridTarget, pixels_per_m: float) -> npt.NDArray[np.uin
     return render_target_texture(target, pixels_per_m)
 
 
+class _HashableCamera(CameraModel, Hashable, Protocol):
+    """A camera model that can be a cache key (the models are frozen dataclasses)."""
+
+
 @cache
-def _rays(camera: CameraModel) -> FloatArray:
+def _rays(camera: _HashableCamera) -> FloatArray:
     u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
     pixels = np.column_stack((u.ravel(), v.ravel())).astype(np.float64)
     return camera.unproject(pixels)
@@ -82,7 +87,8 @@ def render_view(
     low = rng.uniform(60, 140, size=(max(h // 60, 2), max(w // 60, 2)))
     image = cv2.resize(low, (w, h), interpolation=cv2.INTER_CUBIC)
     depth = np.full(h * w, np.inf)
-    rays = _rays(camera)
+    # mypy does not count a Protocol type as Hashable; every camera model is.
+    rays = _rays(cast(_HashableCamera, camera))
     flat = image.reshape(-1)
     for placed in targets:
         target_from_cam = invert_pose(placed.frame_from_target) @ frame_from_cam
@@ -112,7 +118,9 @@ def render_view(
         distance = float(np.median(lam[inside]))
         footprint = ppm * distance / float(camera.intrinsic_matrix[0, 0])
         if footprint > 1.0:
-            texture = cv2.GaussianBlur(texture, (0, 0), 0.5 * footprint)
+            texture = np.asarray(
+                cv2.GaussianBlur(texture, (0, 0), 0.5 * footprint), dtype=np.float32
+            )
         # remap wants 2-D maps under 32767 a side: fold the pixel list into rows of 1024.
         count = int(np.count_nonzero(inside))
         padded = -(-count // 1024) * 1024

@@ -226,7 +226,9 @@ def build_pnf(
             out[offset : offset + len(value)] = value
         return bytes(out)
 
-    u16 = lambda value: value.to_bytes(2, "big")  # noqa: E731
+    def u16(value: int) -> bytes:
+        return value.to_bytes(2, "big")
+
     gases = bytes((settings.o2_percent, 32))
     records = [
         record(

@@ -417,7 +417,7 @@ def decode_manifest_page(page: bytes) -> tuple[list[ManifestRecord], bool]:
     """
     if len(page) != MANIFEST_SIZE:
         raise ProtocolError(f"manifest page of {len(page)} bytes (expected {MANIFEST_SIZE})")
-    records = []
+    records: list[ManifestRecord] = []
     for index in range(MANIFEST_RECORDS):
         raw = page[index * RECORD_SIZE : (index + 1) * RECORD_SIZE]
         marker = raw[0:2]

@@ -169,8 +169,9 @@ def synthetic_dives(
         bottom_s = max(duration_s - descent_s - ascent_s - stop_s, 0.0)
         knots_t = np.cumsum([0.0, descent_s, bottom_s, ascent_s * 0.8, stop_s, ascent_s * 0.2])
         knots_d = [0.0, max_depth_m, max_depth_m * 0.9, 5.0, 5.0, 0.0]
-        stamps = (
-            start_s + np.arange(1, int(duration_s // sample_interval_s) + 1) * sample_interval_s
+        stamps = np.asarray(
+            start_s + np.arange(1, int(duration_s // sample_interval_s) + 1) * sample_interval_s,
+            dtype=np.float64,
         )
         depth = np.interp(stamps - start_s, knots_t, knots_d)
         depth = np.clip(depth + rng.normal(0.0, 0.15, depth.shape), 0.0, None)
