@@ -240,10 +240,17 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     "test40.xml": (IMPORTS, [("2014-04-01T10:00:00", 2485, 38.974)]),
     # Its V3 twin (divesites, a padded date a day later); the same samples.
     "test42.xml": (IMPORTS, [("2014-04-02T10:00:00", 2485, 38.974)]),
-    # Subsurface's reading of test-apd-inspiration.uddf (not copied, 896 kB): one dive
-    # (the UDDF's placeholder dive is not one), samples partly out of time order
-    # (19:00 before 18:59) and repeated, as the APD logger wrote them.
+    # Subsurface's reading of test-apd-inspiration.uddf (below): one dive (the UDDF's
+    # placeholder dive is not one), samples partly out of time order (19:00 before
+    # 18:59) and repeated, as the APD logger wrote them.
     "test-apd-inspiration-reference.xml": (IMPORTS, [("2022-04-24T10:30:58", 695, 60.2)]),
+    # AP DiveSight's UDDF 3.3 of an APD Inspiration CCR dive: a placeholder <dive
+    # id="previous_dive"> (skipped, no start) and the dive, 695 waypoints with divetimes
+    # in tenths of a second, some out of order (1140.0 before 1139.0), sorted on import.
+    "test-apd-inspiration.uddf": (IMPORTS, [("2022-04-24T10:30:58", 695, 60.2)]),
+    # Subsurface's UDDF export of test40.xml (2-second waypoints, depths in whole
+    # centimetres, temperatures in kelvin only where test40.xml has one).
+    "test40.uddf": (IMPORTS, [("2014-04-01T10:00:00", 2485, 38.97)]),
     # Subsurface's reading of test41.csv (four dives without a profile, skipped),
     # TestDivingLog4.1.1.sql (dive 417), test40.xml and test42.xml.
     "test40-42.xml": (
@@ -489,3 +496,48 @@ def test_test40_and_test42_match_subsurface_reading() -> None:
         np.testing.assert_array_equal(ours.stamps_s, reference.stamps_s)
         np.testing.assert_array_equal(ours.depth_m, reference.depth_m)
         np.testing.assert_array_equal(ours.temperature_c, reference.temperature_c)
+
+
+def test_apd_inspiration_uddf_matches_subsurface_reading() -> None:
+    """Subsurface's testparse reads test-apd-inspiration.uddf and saves
+    test-apd-inspiration-reference.xml: our reading of the UDDF gives that reading's dive.
+    Subsurface keeps whole seconds (148.1 s is 2:28) and writes depths in metres as read;
+    out-of-order waypoints are sorted by their own time, so samples are compared per
+    second. The UDDF's greatestdepth, 60.4 m, is Subsurface's recorded maximum."""
+    reference = CORPUS / "test-apd-inspiration-reference.xml"
+    ours = read_logbook(CORPUS / "test-apd-inspiration.uddf")
+    theirs = subsurface_reading(reference)
+    assert len(ours) == len(theirs) == 1
+    (dive,), ((samples, deepest, recorded),) = ours, theirs
+    (reference_dive,) = read_logbook(reference)
+    assert dive.start_iso == reference_dive.start_iso == "2022-04-24T10:30:58"
+    assert dive.model == reference_dive.model == "AP DiveSight"
+    assert dive.stamps_s.size == samples == 695
+    assert abs(dive.max_depth_m - deepest) <= 0.01
+    assert dive.max_depth_m <= recorded == 60.4
+    np.testing.assert_allclose(dive.stamps_s, reference_dive.stamps_s, rtol=0, atol=0.5)
+
+    def per_second(profile: DiveProfile) -> list[tuple[int, float]]:
+        seconds = np.floor(profile.stamps_s - profile.stamps_s[0] + 1e-3).astype(int)
+        return sorted(zip(seconds.tolist(), np.round(profile.depth_m, 3).tolist(), strict=True))
+
+    assert per_second(dive) == per_second(reference_dive)
+    # Subsurface writes the kelvin temperatures to 0.1 C, and only where they change.
+    written = ~np.isnan(reference_dive.temperature_c)
+    np.testing.assert_allclose(
+        dive.temperature_c[written], reference_dive.temperature_c[written], rtol=0, atol=0.051
+    )
+
+
+def test_test40_uddf_is_test40_xml_at_centimetres() -> None:
+    """test40.uddf is not read by Subsurface's tests (its exportUDDF test exports
+    test40.xml to a file of its own and compares two exports), so there is no reading of
+    it to compare against; its content is test40.xml's dive: the same start and 2-second
+    samples, depths rounded to whole centimetres, temperatures on the same samples."""
+    (uddf,) = read_logbook(CORPUS / "test40.uddf")
+    (xml,) = read_logbook(CORPUS / "test40.xml")
+    assert uddf.start_iso == xml.start_iso
+    np.testing.assert_array_equal(uddf.stamps_s, xml.stamps_s)
+    np.testing.assert_allclose(uddf.depth_m, xml.depth_m, rtol=0, atol=0.005 + 1e-9)
+    np.testing.assert_array_equal(np.isnan(uddf.temperature_c), np.isnan(xml.temperature_c))
+    np.testing.assert_allclose(uddf.temperature_c, xml.temperature_c, rtol=0, atol=1e-9)
