@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
+from types import ModuleType
 
+from postproc.commands import export as export_command
+from postproc.commands import options as options_command
+from postproc.commands import run as run_command
 from postproc.pipeline.stages import STAGES
 from shared import cli
 
@@ -15,13 +19,14 @@ example:
   wreckmap-post slam sessions/dive1 --out results/dive1/slam
 """
 
-# Command groups, in the order data flows through the stages: one per stage of the
-# registry that has a command, then the whole batch and the exports.
-COMMAND_MODULES: tuple[str, ...] = (
-    *(stage.command.__name__ for stage in STAGES.values() if stage.command is not None),
-    "postproc.commands.run",
-    "postproc.commands.export",
-    "postproc.commands.options",
+# Command groups, in the order data flows through the stages: the subcommand module of
+# every stage of the registry that has one, then the whole batch, the exports and the
+# options (modules, not names: nothing is looked up by string).
+COMMAND_MODULES: tuple[ModuleType, ...] = (
+    *(stage.command for stage in STAGES.values() if stage.command is not None),
+    run_command,
+    export_command,
+    options_command,
 )
 
 

@@ -12,12 +12,15 @@ import importlib
 import logging
 import sys
 from collections.abc import Sequence
+from types import ModuleType
 
 from shared.errors import WreckmapError
 
 
-def build_parser(prog: str, description: str, modules: Sequence[str]) -> argparse.ArgumentParser:
-    """A parser with one sub-command group per module in `modules`."""
+def build_parser(
+    prog: str, description: str, modules: Sequence[str | ModuleType]
+) -> argparse.ArgumentParser:
+    """A parser with one sub-command group per module in `modules` (modules or names)."""
     parser = argparse.ArgumentParser(
         prog=prog,
         description=description,
@@ -25,13 +28,17 @@ def build_parser(prog: str, description: str, modules: Sequence[str]) -> argpars
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in modules:
-        importlib.import_module(name).register(subparsers)
+    for module in modules:
+        found = importlib.import_module(module) if isinstance(module, str) else module
+        found.register(subparsers)
     return parser
 
 
 def run(
-    prog: str, description: str, modules: Sequence[str], argv: Sequence[str] | None = None
+    prog: str,
+    description: str,
+    modules: Sequence[str | ModuleType],
+    argv: Sequence[str] | None = None,
 ) -> int:
     """Parse `argv`, run the chosen handler; known errors print one line and return 1."""
     parser = build_parser(prog, description, modules)
