@@ -2,11 +2,23 @@
 
 Every time stamp inside wreckmap is an integer count of nanoseconds since the
 UNIX epoch (int64). Seconds as floats appear only at file boundaries (TUM,
-CSV) and go through `ns_from_seconds` / `seconds_from_ns`.
+CSV), in options and in reports, and go through `ns_from_seconds` /
+`seconds_from_ns`; this module is the one home of `NS_PER_S`. Durations,
+offsets and periods use the same functions (a duration is a difference of
+stamps); a period of a rate is `NS_PER_S / rate_hz`.
 
-A float64 holds a present-day epoch time in seconds to about 0.24 µs, so the
-conversions split whole seconds from the fraction to lose nothing more than
-that; arithmetic on stamps stays in integers.
+Rounding rules, exact:
+- `ns_from_seconds` rounds to the nearest nanosecond, ties to even (Python's
+  `round`, NumPy's `rint`). It never truncates: `int(x * 1e9)` would turn
+  1.001 s (a float just below it) into 1 000 999 999 ns. It splits whole seconds
+  from the fraction, so the result is the input float's exact value rounded
+  once; `round(x * 1e9)` rounds the product first (to 256 ns at an epoch time)
+  and can differ from it by that much.
+- `seconds_from_ns` returns the nearest float (correctly rounded `t / 1e9`)
+  for a scalar, and for an array when |t| < 2**53 ns (104 days: every duration
+  and offset); epoch stamps in an array are within one ulp of it (about 0.24 µs
+  at a present-day time, the float's own resolution).
+- Arithmetic on stamps stays in integers; only a final result is converted.
 
 Pure math: no I/O.
 """
@@ -24,6 +36,9 @@ IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
 
 NS_PER_S = 1_000_000_000
+"""Nanoseconds per second (int, so integer arithmetic on stamps stays exact)."""
+
+_EXACT_FLOAT_INT = 2**53
 
 
 @overload
@@ -31,7 +46,8 @@ def ns_from_seconds(t_s: float) -> int: ...
 @overload
 def ns_from_seconds(t_s: npt.NDArray[np.floating] | list[float]) -> IntArray: ...
 def ns_from_seconds(t_s: float | npt.NDArray[np.floating] | list[float]) -> int | IntArray:
-    """Seconds since the epoch (float or array) to int64 nanoseconds, rounded to nearest.
+    """Seconds (a time since the epoch or a duration; float or array) to int64 nanoseconds,
+    rounded to nearest with ties to even, never truncated.
 
     Raises ValueError for non-finite input.
     """
@@ -58,7 +74,11 @@ def seconds_from_ns(t_ns: npt.NDArray[np.integer] | list[int]) -> FloatArray: ..
 def seconds_from_ns(
     t_ns: int | np.integer | npt.NDArray[np.integer] | list[int],
 ) -> float | FloatArray:
-    """Int64 nanoseconds since the epoch to float seconds (nearest float for a scalar)."""
+    """Int64 nanoseconds (a stamp or a duration) to float seconds.
+
+    The nearest float for a scalar and for array entries below 2**53 ns; within one ulp
+    for larger array entries. Raises ValueError for a non-integer array.
+    """
     if isinstance(t_ns, int | np.integer):
         # Python's int / int is correctly rounded.
         return int(t_ns) / NS_PER_S
@@ -66,11 +86,18 @@ def seconds_from_ns(
     if not np.issubdtype(arr.dtype, np.integer):
         raise ValueError(f"seconds_from_ns: expected integer nanoseconds, got {arr.dtype}")
     arr = arr.astype(np.int64)
+    # Below 2**53 the integer is exact as a float and one division rounds correctly.
+    small = np.abs(arr) < _EXACT_FLOAT_INT
+    if np.all(small):
+        quotient: FloatArray = arr.astype(np.float64) / NS_PER_S
+        return quotient
     # Split toward zero so both parts share the sign (no cancellation near zero).
     magnitude = np.abs(arr)
     sign = np.sign(arr).astype(np.float64)
     whole, frac = np.divmod(magnitude, NS_PER_S)
     result: FloatArray = sign * (whole.astype(np.float64) + frac.astype(np.float64) / NS_PER_S)
+    exact = arr.astype(np.float64) / NS_PER_S
+    result[small] = exact[small]
     return result
 
 
