@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.cameras import CameraModel, PinholeEquidistant, PinholeRadtan
+from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.geometry import look_at, so3_exp
 from sim.imu import simulate_imu
 from sim.render import Renderer, WaterModel
@@ -164,7 +165,7 @@ def sweep_trajectory(
         positions[i] = eye
         # world_from_body = world_from_cam @ cam_from_body (the lever arm is a few cm).
         rotations[i] = _view_rotation(eye, aim, roll) @ cam_from_imu[:3, :3]
-    start = start_ns - int(2 * knot_interval_s * 1e9)
+    start = start_ns - ns_from_seconds(2 * knot_interval_s)
     return SplineTrajectory(
         start_ns=start,
         knot_interval_s=knot_interval_s,
@@ -196,8 +197,8 @@ def recording(
     trajectory = sweep_trajectory(rng, cam_from_imu, duration_s=duration_s + 1.0)
     imu_from_cam = np.linalg.inv(cam_from_imu)
     frame_count = int(duration_s * fps)
-    shift_ns = round(timeshift_cam_imu_s * 1e9)
-    frame_stamps = START_NS + np.round(np.arange(frame_count) / fps * 1e9).astype(np.int64)
+    shift_ns = ns_from_seconds(timeshift_cam_imu_s)
+    frame_stamps = START_NS + ns_from_seconds(np.arange(frame_count) / fps)
     world_from_body = trajectory.world_from_body(frame_stamps + shift_ns)
     world_from_cam = world_from_body @ imu_from_cam
     imu_stamps = START_NS - 200_000_000 + np.arange(int((duration_s + 0.4) * 200)) * 5_000_000
@@ -219,7 +220,7 @@ def recording(
     return Recording(
         camera=camera,
         cam_from_imu=cam_from_imu,
-        timeshift_cam_imu_s=shift_ns * 1e-9,
+        timeshift_cam_imu_s=seconds_from_ns(shift_ns),
         frame_stamps_ns=frame_stamps,
         images=images,
         world_from_cam=world_from_cam,
@@ -246,10 +247,8 @@ def two_gyros(
     imu0 = simulate_imu(trajectory, true0, noise=default_imu_noise(200.0), rng=rng)
     true1 = (
         START_NS
-        + 1_000_000_000
-        + np.round(np.arange(int((duration1_s or duration_s - 2.0) * 197)) / 197.0 * 1e9).astype(
-            np.int64
-        )
+        + NS_PER_S
+        + ns_from_seconds(np.arange(int((duration1_s or duration_s - 2.0) * 197)) / 197.0)
     )
     imu1 = simulate_imu(
         trajectory,
@@ -259,5 +258,5 @@ def two_gyros(
         gyro_bias0_rad_s=(0.01, 0.0, -0.01),
     )
     imu1_from_imu0 = so3_exp(rng.normal(0.0, 1.0, 3))
-    stamps1 = true1 + round(offset_s * 1e9)
+    stamps1 = true1 + ns_from_seconds(offset_s)
     return true0, imu0.gyro_rad_s, stamps1, imu1.gyro_rad_s @ imu1_from_imu0.T, imu1_from_imu0

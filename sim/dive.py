@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from shared.clock import ClockModel
+from shared.clock import NS_PER_S, ClockModel, ns_from_seconds, seconds_from_ns
 from shared.formats.diveprofile import DiveProfile, stamp_s_to_iso
 from shared.geometry import make_pose
 from shared.trajectory import Trajectory
@@ -118,8 +118,8 @@ def true_depth_m(
     first = float(-trajectory.position_m([film_start_ns])[0, 2])
     last = float(-trajectory.position_m([film_end_ns])[0, 2])
     depth = np.zeros(t.shape, dtype=np.float64)
-    rel_s = (t - film_start_ns).astype(np.float64) * 1e-9
-    after_s = (t - film_end_ns).astype(np.float64) * 1e-9
+    rel_s = seconds_from_ns(t - film_start_ns)
+    after_s = seconds_from_ns(t - film_end_ns)
     filming = (t >= film_start_ns) & (t <= film_end_ns)
     if filming.any():
         depth[filming] = -trajectory.position_m(t[filming])[:, 2]
@@ -172,8 +172,8 @@ def dive_timeline_ns(
         + options.safety_stop_s
         + options.safety_stop_depth_m / options.ascent_rate_m_s
     )
-    start = film_start_ns - round((options.descent_s + options.bottom_before_s) * 1e9)
-    return start, film_end_ns + round(after_s * 1e9)
+    start = film_start_ns - ns_from_seconds(options.descent_s + options.bottom_before_s)
+    return start, film_end_ns + ns_from_seconds(after_s)
 
 
 def simulate_dive_profile(
@@ -192,12 +192,12 @@ def simulate_dive_profile(
     `sample_interval_s` of its own clock until the diver surfaces.
     """
     dive_start, dive_end = dive_timeline_ns(film_start_ns, film_end_ns, trajectory, options)
-    start_dc_s = float(np.floor(clock.apply(dive_start) * 1e-9))
-    end_dc_s = clock.apply(dive_end) * 1e-9
+    start_dc_s = float(clock.apply(dive_start) // NS_PER_S)
+    end_dc_s = seconds_from_ns(clock.apply(dive_end))
     stamps_dc_s = start_dc_s + options.sample_interval_s * np.arange(
         1, int((end_dc_s - start_dc_s) / options.sample_interval_s) + 1
     )
-    stamps_dc_ns = np.rint(stamps_dc_s * 1e9).astype(np.int64)
+    stamps_dc_ns = ns_from_seconds(stamps_dc_s)
     true_ns = clock.inverse(stamps_dc_ns)
     depth = true_depth_m(trajectory, film_start_ns, film_end_ns, true_ns, options)
     logged = log_depth(depth, rng, noise_m=options.depth_noise_m, step_m=options.depth_step_m)
@@ -344,7 +344,7 @@ def simulate_dive(
     rel = trajectory_start_s + np.arange(n) / rate_hz
     # A little jitter on the stamps, as a keyframe-based VIO has.
     rel[1:-1] += rng.uniform(-0.2, 0.2, n - 2) / rate_hz
-    stamps_ns = np.rint((CAMERA_EPOCH_S + rel) * 1e9).astype(np.int64)
+    stamps_ns = ns_from_seconds(CAMERA_EPOCH_S + rel)
     z_world = -np.interp(rel, t_dive, depth_true)
     heading = np.cumsum(rng.normal(0.0, 0.02, n))
     speed = 0.3

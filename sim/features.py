@@ -24,6 +24,7 @@ import numpy.typing as npt
 from postproc.slam.types import FrameTracks
 from shared.calibration.cameras import PinholeRadtan
 from shared.calibration.kalibr import ImuNoise
+from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.geometry import invert_pose, make_pose
 from sim.imu import RandomBias, SimulatedImu, simulate_imu
 
@@ -123,7 +124,7 @@ class DiverMotion:
     )
 
     def _t(self, stamps_ns: npt.ArrayLike) -> FloatArray:
-        return (np.asarray(stamps_ns, dtype=np.int64) - self.start_ns).astype(np.float64) * 1e-9
+        return seconds_from_ns(np.asarray(stamps_ns, dtype=np.int64) - self.start_ns)
 
     def rotation(self, stamps_ns: IntArray) -> FloatArray:
         """(N, 3, 3) rotations `R_W_B` at the stamps (int64 ns)."""
@@ -298,9 +299,9 @@ def simulate_sequence(
     imu_from_cam = default_imu_from_cam()
     landmarks = wreck_side_landmarks(rng, density_per_m2=options.landmark_density_per_m2)
 
-    frame_dt_ns = round(1e9 / options.frame_rate_hz)
-    imu_dt_ns = round(1e9 / options.imu_rate_hz)
-    duration_ns = round(options.duration_s * 1e9)
+    frame_dt_ns = round(NS_PER_S / options.frame_rate_hz)
+    imu_dt_ns = round(NS_PER_S / options.imu_rate_hz)
+    duration_ns = ns_from_seconds(options.duration_s)
     frame_stamps = motion.start_ns + np.arange(0, duration_ns + 1, frame_dt_ns, dtype=np.int64)
     # IMU starts a little before the first frame and ends after the last, as recorders do.
     imu_stamps = motion.start_ns + np.arange(

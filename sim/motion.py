@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from shared.clock import ns_from_seconds
 from shared.geometry import look_at, so3_exp
 from sim.spline import SplineTrajectory
 
@@ -226,7 +227,7 @@ def diver_trajectory(
     rot_wb = rot_wc @ cam_from_imu_arr[:3, :3]
     pos_wb = pos_wc + rot_wc @ cam_from_imu_arr[:3, 3]
     return SplineTrajectory(
-        start_ns=int(start_ns - round(margin_s * 1e9)),
+        start_ns=int(start_ns - ns_from_seconds(margin_s)),
         knot_interval_s=knot_interval_s,
         position_ctrl_m=pos_wb,
         rotation_ctrl=rot_wb,

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.geometry import so3_exp, so3_log
 
 FloatArray = npt.NDArray[np.float64]
@@ -97,7 +98,7 @@ class SplineTrajectory:
     @property
     def end_ns(self) -> int:
         """End of the valid time range (int64 ns, exclusive)."""
-        return self.start_ns + round(self.num_segments * self.knot_interval_s * 1e9)
+        return self.start_ns + ns_from_seconds(self.num_segments * self.knot_interval_s)
 
     def _segments(self, t_ns: npt.ArrayLike) -> tuple[IntArray, FloatArray]:
         t = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
@@ -106,7 +107,7 @@ class SplineTrajectory:
                 f"time outside the spline's range [{self.start_ns}, {self.end_ns}] ns: "
                 f"[{t.min()}, {t.max()}]"
             )
-        x = (t - self.start_ns).astype(np.float64) * 1e-9 / self.knot_interval_s
+        x = seconds_from_ns(t - self.start_ns) / self.knot_interval_s
         seg = np.minimum(np.floor(x).astype(np.int64), self.num_segments - 1)
         return seg, x - seg
 

@@ -24,7 +24,7 @@ import numpy.typing as npt
 
 from shared.calibration.cameras import PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, ImuNoise
-from shared.clock import ClockModel
+from shared.clock import NS_PER_S, ClockModel, ns_from_seconds
 from shared.errors import OutputExistsError
 from shared.forkpool import fork_pool
 from shared.formats.diveprofile import DiveProfile
@@ -225,8 +225,8 @@ class SurveySimulator:
 
     def _make_session(self, k: int) -> SessionTruth:
         opt = self.options
-        start_ns = _utc_ns(opt.start_utc) + round(k * opt.session_gap_s * 1e9)
-        duration_ns = round(opt.duration_s * 1e9)
+        start_ns = _utc_ns(opt.start_utc) + ns_from_seconds(k * opt.session_gap_s)
+        duration_ns = ns_from_seconds(opt.duration_s)
         route = builtin_route(k)
         trajectory = diver_trajectory(
             route,
@@ -238,24 +238,26 @@ class SurveySimulator:
         )
         n_frames = max(int(np.floor(opt.duration_s * opt.fps + 1e-9)), 1)
         fps = Fraction(opt.fps).limit_denominator(1001)
-        frame_offsets = np.array([round(i * 1e9 / fps) for i in range(n_frames)], dtype=np.int64)
+        frame_offsets = np.array(
+            [round(i * NS_PER_S / fps) for i in range(n_frames)], dtype=np.int64
+        )
         n_imu = int(np.floor(opt.duration_s * opt.imu_rate_hz + 1e-9)) + 1
         imu_offsets = np.array(
-            [round(j * 1e9 / opt.imu_rate_hz) for j in range(n_imu)], dtype=np.int64
+            [round(j * NS_PER_S / opt.imu_rate_hz) for j in range(n_imu)], dtype=np.int64
         )
         bias_rng = self._rng(_RNG_BIAS, k)
         clock_rng = self._rng(_RNG_CLOCKS, k)
         # Dive computers keep local time (hours off UTC) and drift (tens of ppm).
         dive_clock = ClockModel(
-            offset_ns=round(
-                (3600.0 * int(clock_rng.integers(-3, 4)) + clock_rng.uniform(-120, 120)) * 1e9
+            offset_ns=ns_from_seconds(
+                3600.0 * int(clock_rng.integers(-3, 4)) + clock_rng.uniform(-120, 120)
             ),
             drift_ppm=float(clock_rng.uniform(-50.0, 50.0)),
             reference_ns=start_ns,
         )
         gopro_clock = ClockModel(
-            offset_ns=round(
-                (3600.0 * int(clock_rng.integers(0, 3)) + clock_rng.uniform(-30, 30)) * 1e9
+            offset_ns=ns_from_seconds(
+                3600.0 * int(clock_rng.integers(0, 3)) + clock_rng.uniform(-30, 30)
             ),
             drift_ppm=float(clock_rng.uniform(-20.0, 20.0)),
             reference_ns=start_ns,
@@ -297,7 +299,7 @@ class SurveySimulator:
 
     @property
     def timeshift_ns(self) -> int:
-        return round(self.options.timeshift_cam_imu_s * 1e9)
+        return ns_from_seconds(self.options.timeshift_cam_imu_s)
 
     def world_from_body(self, session: int, t_ns: npt.ArrayLike) -> FloatArray:
         """(N,4,4) true body poses `T_W_B` at true (IMU-clock) times."""
@@ -545,8 +547,8 @@ def _gopro_payloads(sim: SurveySimulator, session: int, imu: SimulatedImu) -> li
     total = 0
     for p in range(n_payloads):
         # Payload p covers media time [p, p + 1) * per_s; ceil keeps the bounds exact in ns.
-        lo = math.ceil(p * per_s * 1_000_000_000)
-        hi = math.ceil((p + 1) * per_s * 1_000_000_000)
+        lo = math.ceil(p * per_s * NS_PER_S)
+        hi = math.ceil((p + 1) * per_s * NS_PER_S)
         # Samples before the first frame (media time < 0) are not in the file, as on a camera.
         pick = np.flatnonzero((media_ns >= lo) & (media_ns < hi))
         first_us = int(media_ns[pick[0]] // 1000) if len(pick) else int(lo // 1000)
@@ -627,7 +629,7 @@ def write_session(sim: SurveySimulator, session: int, folder: Path, bar: Any) ->
             fps=fps,
             keyframe_flags=stream.keyframes,
             gpmf_payloads=_gopro_payloads(sim, session, imu),
-            creation_time=datetime.fromtimestamp(created_ns // 1_000_000_000, tz=UTC),
+            creation_time=datetime.fromtimestamp(created_ns // NS_PER_S, tz=UTC),
         )
 
 

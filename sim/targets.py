@@ -28,6 +28,7 @@ from shared.calibration.aprilgrid import (
 )
 from shared.calibration.cameras import CameraModel, PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, write_camchain
+from shared.clock import ns_from_seconds
 from shared.formats.tum import write_tum
 from shared.geometry import invert_pose, look_at, make_pose
 from shared.trajectory import Trajectory
@@ -354,7 +355,7 @@ def make_survey(
                     estimated.append(estimate)
                     images.append(image)
                     stamp += 500_000_000
-                stamp += round(options.pass_gap_s * 1e9)
+                stamp += ns_from_seconds(options.pass_gap_s)
         folders.append(write_slam_folder(root / name, camera, stamps, np.array(estimated), images))
     truth = SurveyTruth(
         world_from_session=truth_sessions,
