@@ -21,6 +21,7 @@ def test_ply_round_trip(tmp_path: Path) -> None:
     )
     back = read_ply(write_ply(tmp_path / "a.ply", ply, comments=["frame W, metres"]))
     np.testing.assert_allclose(back.vertices, ply.vertices, rtol=1e-6)
+    assert back.normals is not None and ply.normals is not None
     np.testing.assert_allclose(back.normals, ply.normals, rtol=1e-6)
     np.testing.assert_array_equal(back.colors, ply.colors)
     np.testing.assert_array_equal(back.faces, ply.faces)
