@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow(seconds=240)
-@pytest.mark.timeout(2000)
+@pytest.mark.timeout(3700)
 def test_reduced_demo(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     env = {**os.environ, "WRECKMAP_PROGRESS": "0", "PYTHONPATH": str(REPO)}
@@ -29,18 +29,19 @@ def test_reduced_demo(tmp_path: Path) -> None:
         "--dense-image-px", "160", "--depth-min-range-m", "0.2",
     ]  # fmt: skip
     # Its own process group, so that a timeout stops the simulator and the pipeline too.
-    # The limit is a hang guard: about 4 minutes on two quiet cores, 9 with other jobs
-    # holding the machine (load 9), so 30 minutes means something is stuck.
+    # The limit is a hang guard, never a speed check: about 4 minutes on two quiet cores, 9
+    # with other jobs holding the machine (load 9), and under `nice` at load 11 the
+    # simulation alone ran 7x slower than quiet; an hour (15x) means something is stuck.
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
         start_new_session=True,
     )  # fmt: skip
     try:
-        stdout, stderr = process.communicate(timeout=1800)
+        stdout, stderr = process.communicate(timeout=3600)
     except subprocess.TimeoutExpired:
         os.killpg(process.pid, signal.SIGKILL)
         stdout, stderr = process.communicate()
-        pytest.fail(f"the reduced demo did not end within 1800 s:\n{stdout[-3000:]}")
+        pytest.fail(f"the reduced demo did not end within 3600 s:\n{stdout[-3000:]}")
     result = subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
     log = result.stdout + result.stderr
     # The real intake paths ran: the dive computer over a pty, the GoPro import.
