@@ -32,6 +32,7 @@ import numpy as np
 
 from shared.archive import ArchiveReader
 from shared.archive.video import SessionVideo, session_archives
+from shared.clock import NS_PER_S
 from shared.errors import InputError, OutputExistsError
 from shared.fsutil import atomic_path
 from shared.progress import progress
@@ -134,7 +135,7 @@ def export_rosbag1(
     def header(stamp_ns: int, seq: int, frame_id: str) -> Any:
         return Header(
             seq=seq,
-            stamp=Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
+            stamp=Time(sec=stamp_ns // NS_PER_S, nanosec=stamp_ns % NS_PER_S),
             frame_id=frame_id,
         )
 

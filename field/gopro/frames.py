@@ -18,6 +18,7 @@ import numpy as np
 
 from field.gopro.mp4 import read_mp4
 from shared.archive.video import SessionVideo, VideoFrame, iter_frames
+from shared.clock import NS_PER_S
 from shared.errors import InputError
 
 __all__ = ["SessionVideo", "VideoFrame", "iter_frames", "iter_mp4_frames"]
@@ -45,7 +46,7 @@ def iter_mp4_frames(
         if mp4.creation_time is None:
             raise InputError(f"{path.name}: no creation time; give start_ns")
         created = mp4.creation_time
-        start_ns = int(created.timestamp()) * 1_000_000_000 + created.microsecond * 1000
+        start_ns = int(created.timestamp()) * NS_PER_S + created.microsecond * 1000
     fmt = "gray" if grayscale else "bgr24"
     with av.open(str(path)) as container:
         stream = container.streams.video[0]
@@ -59,7 +60,7 @@ def iter_mp4_frames(
             if frame.pts is None:
                 raise InputError(f"{path.name}: decoded frame without a timestamp")
             ticks = frame.pts * time_base * track.timescale
-            stamp = start_ns + round(frame.pts * time_base * 1_000_000_000)
+            stamp = start_ns + round(frame.pts * time_base * NS_PER_S)
             if scale != 1.0:
                 width = max(1, round(frame.width * scale))
                 height = max(1, round(frame.height * scale))

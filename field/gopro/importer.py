@@ -92,13 +92,13 @@ from shared.archive import (
 )
 from shared.archive.video import FRAME_SIZE_METADATA, KEYFRAME_METADATA
 from shared.archive.writer import Compression
+from shared.clock import NS_PER_S, seconds_from_ns
 from shared.errors import InputError, OutputExistsError, WreckmapError
 from shared.fsutil import atomic_path, write_text_atomic
 from shared.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
-NS_PER_S = 1_000_000_000
 SESSION_METADATA_KEYS = ("session_id", "source", "camera_model", "serial", "firmware")
 
 # GoPro file names: GX/GH (HERO6+; chapter 01.., file number), GOPR + GPcc (HERO5 and older).
@@ -1038,7 +1038,7 @@ def _write_streams(
                     "imu_start_s": (
                         None
                         if imu is None or not imu.times_ns.size
-                        else float(imu.times_ns[0]) / 1e9
+                        else seconds_from_ns(int(imu.times_ns[0]))
                     ),
                     "video_bytes": video.video_bytes,
                     "finalised": video.track is not None,

@@ -29,6 +29,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from shared.clock import NS_PER_S
 from shared.errors import InputError
 
 # Seconds between the MP4 epoch (1904-01-01) and the UNIX epoch (1970-01-01).
@@ -179,7 +180,7 @@ class Track:
         """Presentation time of each sample, int64 ns on the movie timeline (composition
         time minus the edit list's media start; GoPro's edit lists start at 0)."""
         ticks = self.composition_times - self.edit_media_time
-        pts: np.ndarray = (ticks * 1_000_000_000) // self.timescale
+        pts: np.ndarray = (ticks * NS_PER_S) // self.timescale
         return pts
 
 

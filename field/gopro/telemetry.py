@@ -26,6 +26,7 @@ import numpy as np
 from field.gopro.gpmf import GPMFError, GPMFPayload, GPMFStream, decode_value, parse_payload
 from field.gopro.mp4 import MP4File, read_mp4
 from field.gopro.timing import PayloadSamples, stream_times
+from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import InputError
 from shared.fsutil import write_text_atomic
 
@@ -65,7 +66,7 @@ class TelemetryStream:
 
     @property
     def times_s(self) -> np.ndarray:
-        return self.times_ns.astype(np.float64) * 1e-9
+        return seconds_from_ns(self.times_ns)
 
     @property
     def samples(self) -> int:
@@ -358,7 +359,7 @@ def _assemble(
         device_id=last.device_id,
         device_name=last.device_name,
         units=last.units,
-        times_ns=np.round(timing.times_s * 1e9).astype(np.int64),
+        times_ns=ns_from_seconds(timing.times_s),
         values=np.concatenate(values),
         raw=np.concatenate(raws),
         rate_hz=timing.rate_hz,

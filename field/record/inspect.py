@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from shared.archive import HEALTH_TOPIC, ArchiveReader, Imu, RecorderEvent
+from shared.clock import NS_PER_S, seconds_from_ns
 from shared.errors import InputError
 
 
@@ -92,7 +93,7 @@ class InspectReport:
     def as_dict(self) -> dict[str, Any]:
         doc = asdict(self)
         doc["path"] = str(self.path)
-        doc["duration_s"] = round((self.last_ns - self.first_ns) * 1e-9, 6)
+        doc["duration_s"] = round(seconds_from_ns(self.last_ns - self.first_ns), 6)
         return doc
 
 
@@ -114,15 +115,15 @@ def _topic_report(topic: str, schema: str, stamps: np.ndarray, logs: np.ndarray)
     intervals = np.diff(stamps)
     report.stamps_backwards = int(np.count_nonzero(intervals < 0))
     sorted_stamps = np.sort(stamps)
-    span_s = (int(sorted_stamps[-1]) - int(sorted_stamps[0])) * 1e-9
+    span_s = seconds_from_ns(int(sorted_stamps[-1]) - int(sorted_stamps[0]))
     report.rate_hz = (count - 1) / span_s if span_s > 0 else 0.0
     positive = np.diff(sorted_stamps)
     period = float(np.median(positive)) if positive.size else 0.0
-    report.period_s = period * 1e-9
+    report.period_s = period / NS_PER_S  # a median: half ns possible
     if period > 0:
         for i in np.nonzero(positive > 2 * period)[0]:
             report.gaps.append(
-                Gap(after_ns=int(sorted_stamps[i]), length_s=float(positive[i]) * 1e-9)
+                Gap(after_ns=int(sorted_stamps[i]), length_s=seconds_from_ns(int(positive[i])))
             )
     # Clock consistency: receive (log) time minus sensor time.
     delta = (logs - stamps).astype(np.float64)
@@ -130,7 +131,7 @@ def _topic_report(topic: str, schema: str, stamps: np.ndarray, logs: np.ndarray)
     report.latency_std_ms = float(delta.std()) * 1e-6
     report.latency_min_ms = float(delta.min()) * 1e-6
     report.latency_max_ms = float(delta.max()) * 1e-6
-    x_s = (stamps - stamps[0]).astype(np.float64) * 1e-9
+    x_s = seconds_from_ns(stamps - stamps[0])
     if x_s.max() - x_s.min() >= 2.0:  # shorter spans give noise, not drift
         slope_ns_per_s = np.polyfit(x_s, delta, 1)[0]
         report.clock_drift_ppm = float(slope_ns_per_s) * 1e-3
@@ -199,7 +200,7 @@ def inspect_path(path: Path | str) -> list[InspectReport]:
 
 def format_report(report: InspectReport) -> str:
     """A text table of one report."""
-    duration = (report.last_ns - report.first_ns) * 1e-9
+    duration = seconds_from_ns(report.last_ns - report.first_ns)
     state = "complete, indexed" if report.complete else "NOT CLOSED (run wreckmap-field recover)"
     lines = [
         f"{report.path}: {report.size_bytes / 2**20:.1f} MiB, {duration:.2f} s, {state}",
@@ -218,7 +219,7 @@ def format_report(report: InspectReport) -> str:
         if t.stamps_backwards:
             lines.append(f"  {t.topic}: {t.stamps_backwards} header stamps go backwards")
     for event in report.events:
-        at = (event.stamp_ns - report.first_ns) * 1e-9
+        at = seconds_from_ns(event.stamp_ns - report.first_ns)
         if event.kind == "source_back":
             gap = event.details.get("gap_s", float("nan"))
             lines.append(f"gap: {event.source} back after {gap:.2f} s (at +{at:.2f} s)")

@@ -35,6 +35,7 @@ import numpy as np
 
 from field.record.sources.base import SourceSample
 from shared.archive import CompressedImage, CompressedVideo, DepthSample, Imu
+from shared.clock import NS_PER_S, seconds_from_ns
 from shared.errors import DeviceError, InputError
 
 log = logging.getLogger(__name__)
@@ -192,7 +193,7 @@ class PreviewPublisher:
         if isinstance(message, CompressedVideo | CompressedImage):
             if not sample.keyframe and isinstance(message, CompressedVideo):
                 return
-            period_ns = 1e9 / self.options.thumbnail_hz
+            period_ns = NS_PER_S / self.options.thumbnail_hz
             if sample.receive_ns - self._last_frame_ns.get(topic, 0) < period_ns:
                 return
             self._last_frame_ns[topic] = sample.receive_ns
@@ -279,7 +280,7 @@ class PreviewPublisher:
             )
 
     def _publish_imu(self) -> None:
-        step_ns = 1e9 / self.options.imu_plot_hz
+        step_ns = NS_PER_S / self.options.imu_plot_hz
         for topic, window in list(self._imu.items()):
             items = []
             while window:
@@ -294,7 +295,7 @@ class PreviewPublisher:
             for i in range(1, len(stamps)):
                 if stamps[i] - stamps[keep[-1]] >= step_ns:
                     keep.append(i)
-            span_s = (stamps[-1] - stamps[0]) * 1e-9
+            span_s = seconds_from_ns(stamps[-1] - stamps[0])
             summary = {
                 "stamp_ns": int(stamps[-1]),
                 "count": len(items),

@@ -45,6 +45,7 @@ from shared.archive import (
     SessionInfo,
 )
 from shared.archive.writer import Compression
+from shared.clock import seconds_from_ns
 from shared.errors import DeviceError, InputError, OutputExistsError, WreckmapError
 from shared.fsutil import write_text_atomic
 
@@ -306,7 +307,7 @@ class Recorder:
                     self._drain_and_close()
                 except OSError as error:
                     clean = self._disk_error(error)
-        duration_s = (self._clock.now_ns() - self._started_ns) * 1e-9
+        duration_s = seconds_from_ns(self._clock.now_ns() - self._started_ns)
         report = RecordReport(
             session_dir=self.session_dir,
             files=list(self._files),
@@ -376,7 +377,7 @@ class Recorder:
                 self._source_up[source.name] = True
                 back_ns = self._clock.now_ns()
                 lost_ns = self._lost_at_ns.pop(source.name, back_ns)
-                gap_s = round((back_ns - lost_ns) * 1e-9, 3)
+                gap_s = round(seconds_from_ns(back_ns - lost_ns), 3)
                 self._record_event(
                     "source_back",
                     source.name,
@@ -417,7 +418,7 @@ class Recorder:
         previous_ns, stats.last_receive_ns = stats.last_receive_ns, sample.receive_ns
         if stats.silent_since_ns:
             stats.silent_since_ns = 0
-            gap_s = round((sample.receive_ns - previous_ns) * 1e-9, 3)
+            gap_s = round(seconds_from_ns(sample.receive_ns - previous_ns), 3)
             self._record_event(
                 "source_back",
                 sample.topic,
@@ -549,7 +550,7 @@ class Recorder:
             stats = self._stats.get(topic)
             if stats is None or not stats.count or rate_hz <= 0 or stats.silent_since_ns:
                 continue
-            silent_s = (now - stats.last_receive_ns) * 1e-9
+            silent_s = seconds_from_ns(now - stats.last_receive_ns)
             if silent_s > max(1.0, 5.0 / rate_hz):
                 stats.silent_since_ns = stats.last_receive_ns
                 self._record_event(
@@ -565,14 +566,14 @@ class Recorder:
             entry = {
                 "host_ns": now,
                 "wall_ns": now + offset_ns,
-                "step_s": round(step_ns * 1e-9, 6),
-                "wall_minus_host_s": round(offset_ns * 1e-9, 6),
+                "step_s": round(seconds_from_ns(step_ns), 6),
+                "wall_minus_host_s": round(seconds_from_ns(offset_ns), 6),
             }
             self._clock_steps.append(entry)
             self._record_event("clock_step", "", entry)
             self._event(
-                f"host wall clock stepped {step_ns * 1e-9:+.3f} s; recorded times stay "
-                "monotonic (wall = host + {:.3f} s)".format(offset_ns * 1e-9)
+                f"host wall clock stepped {seconds_from_ns(step_ns):+.3f} s; recorded times stay "
+                "monotonic (wall = host + {:.3f} s)".format(seconds_from_ns(offset_ns))
             )
 
     def _update_health(self, window_s: float) -> None:
@@ -597,7 +598,7 @@ class Recorder:
             "t_ns": self._clock.now_ns(),
             "session": self.session_id,
             "rig": self.options.rig,
-            "uptime_s": round((self._clock.now_ns() - self._started_ns) * 1e-9, 1),
+            "uptime_s": round(seconds_from_ns(self._clock.now_ns() - self._started_ns), 1),
             "file": writer.path.name if writer is not None else "",
             "file_bytes": writer.bytes_written if writer is not None else 0,
             "files": len(self._files),
@@ -712,4 +713,4 @@ class Recorder:
 
 
 def _iso(t_ns: int) -> str:
-    return datetime.fromtimestamp(t_ns / 1e9, UTC).isoformat(timespec="milliseconds")
+    return datetime.fromtimestamp(seconds_from_ns(t_ns), UTC).isoformat(timespec="milliseconds")

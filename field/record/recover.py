@@ -14,6 +14,7 @@ from pathlib import Path
 
 from shared.archive import ArchiveReader, ArchiveWriter
 from shared.archive.writer import SESSION_METADATA_NAME
+from shared.clock import seconds_from_ns
 from shared.errors import InputError
 from shared.fsutil import atomic_path
 
@@ -36,7 +37,7 @@ class RecoverReport:
 
     def summary(self) -> str:
         total = sum(self.messages.values())
-        span = (self.last_ns - self.first_ns) * 1e-9
+        span = seconds_from_ns(self.last_ns - self.first_ns)
         lines = [
             f"{self.output}: {total} messages recovered from {self.source.name} "
             f"({span:.2f} s, {self.skipped_bytes} bytes skipped)"

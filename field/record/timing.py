@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from shared.clock import ClockModel
+from shared.clock import ClockModel, seconds_from_ns
 
 
 class DeviceClockMapper:
@@ -93,7 +93,7 @@ class ClockFit:
         if self._ref_ns is None:
             self._ref_ns = int(source_ns)
             self._y0_ns = int(target_ns) - int(source_ns)
-        x = (int(source_ns) - self._ref_ns) * 1e-9  # seconds
+        x = seconds_from_ns(int(source_ns) - self._ref_ns)
         y = float(int(target_ns) - int(source_ns) - self._y0_ns)  # ns
         self._n += 1
         self._sx += x

@@ -38,6 +38,7 @@ from shared.archive import (
     imu_topic,
     video_topic,
 )
+from shared.clock import NS_PER_S
 from shared.errors import DeviceError
 
 log = logging.getLogger(__name__)
@@ -91,7 +92,7 @@ class OakOptions:
 
 def timedelta_ns(value: datetime.timedelta) -> int:
     """A DepthAI timestamp (datetime.timedelta) as integer nanoseconds, exactly."""
-    return (value.days * 86_400 + value.seconds) * 1_000_000_000 + value.microseconds * 1000
+    return (value.days * 86_400 + value.seconds) * NS_PER_S + value.microseconds * 1000
 
 
 def steady_to_epoch_offset_ns() -> int:

@@ -46,7 +46,7 @@ from shared.archive import (
     imu_topic,
     video_topic,
 )
-from shared.clock import ClockModel
+from shared.clock import NS_PER_S, ClockModel, ns_from_seconds, seconds_from_ns
 from shared.errors import DeviceError, InputError
 
 log = logging.getLogger(__name__)
@@ -320,7 +320,9 @@ def prepare_clip(options: SimOptions) -> Path:
             )
         if options.depth_rate_hz > 0:
             n_depth = max(round(options.clip_s * options.depth_rate_hz), 1)
-            offsets = np.round(np.arange(n_depth) * 1e9 / options.depth_rate_hz).astype(np.int64)
+            offsets = np.round(np.arange(n_depth) * NS_PER_S / options.depth_rate_hz).astype(
+                np.int64
+            )
             z = sim.world_from_body(0, start_ns + offsets)[:, 2, 3]
             for off, z_m in zip(offsets, z, strict=True):
                 depth = max(-float(z_m), 0.0)  # world z is 0 at the surface, up
@@ -373,7 +375,7 @@ class SimSource:
     def __init__(self, options: SimOptions) -> None:
         self.options = options
         self._tracks: list[_Track] = []
-        self._clip_ns = round(options.clip_s * 1e9)
+        self._clip_ns = ns_from_seconds(options.clip_s)
         self._opened_at_ns: int | None = None
         self._start_true_ns = 0
         self._device_clock: ClockModel | None = None
@@ -402,7 +404,7 @@ class SimSource:
             now = host_now_ns()
             self._opened_at_ns = now
             # Device clock: ns since boot, running drift_ppm fast (true time = host epoch here).
-            boot_ns = now - round(self.options.boot_s_ago * 1e9)
+            boot_ns = now - ns_from_seconds(self.options.boot_s_ago)
             self._device_clock = ClockModel(
                 offset_ns=-boot_ns, drift_ppm=self.options.clock_drift_ppm, reference_ns=boot_ns
             )
@@ -419,7 +421,7 @@ class SimSource:
     def read(self, timeout_s: float) -> list[SourceSample]:
         if not self._is_open:
             raise DeviceError("simulated rig: read before open")
-        deadline = host_now_ns() + round(timeout_s * 1e9)
+        deadline = host_now_ns() + ns_from_seconds(timeout_s)
         while True:
             now = host_now_ns()
             if self._in_fault(now, "device_lost"):
@@ -431,7 +433,7 @@ class SimSource:
             wake = min(self._due_time(t, t.next_index) for t in self._tracks)
             if now >= deadline:
                 return []
-            time.sleep(max(min(wake, deadline) - now, 0) / 1e9 + 0.0002)
+            time.sleep(seconds_from_ns(max(min(wake, deadline) - now, 0)) + 0.0002)
 
     def close(self) -> None:
         self._is_open = False
@@ -535,7 +537,7 @@ class SimSource:
         length = o.device_lost_for_s if kind == "device_lost" else o.camera_unplug_for_s
         if at is None or self._opened_at_ns is None:
             return False
-        t = (now_ns - self._opened_at_ns) * 1e-9
+        t = seconds_from_ns(now_ns - self._opened_at_ns)
         return at <= t < at + length
 
     def _due(self, now_ns: int) -> list[SourceSample]:
