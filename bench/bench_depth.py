@@ -54,6 +54,7 @@ from postproc.depth.sync import (
     fit_depth_sync,
     solve_clock_offset,
 )
+from shared.clock import seconds_from_ns
 from sim.dive import SyntheticDive, simulate_dive
 
 WRONG_S = 5.0  # an answer further off than this is wrong (the measure)
@@ -67,9 +68,9 @@ def relative(sim: SyntheticDive) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
     reference_ns = int(sim.trajectory.stamps_ns[0])
     dive = sim.dives[sim.dive_index]
     return (
-        (sim.trajectory.stamps_ns - reference_ns) / 1e9,
+        seconds_from_ns(sim.trajectory.stamps_ns - reference_ns),
         sim.trajectory.positions[:, 2],
-        dive.stamps_s - reference_ns / 1e9,
+        dive.stamps_s - seconds_from_ns(reference_ns),
         dive.depth_m,
     )
 
@@ -542,9 +543,9 @@ def part_short_dives(seeds: int) -> None:
             z += rng.normal(0.0, 0.01, z.size)
             camera_ns = truth.gopro_clock.apply(true_ns)
             reference_ns = int(camera_ns[0])
-            traj_t = (camera_ns - reference_ns) / 1e9
-            true_offset = (truth.dive_clock.apply(int(true_ns[0])) - reference_ns) / 1e9
-            dives = [(p.stamps_s - reference_ns / 1e9, p.depth_m) for p in profiles]
+            traj_t = seconds_from_ns(camera_ns - reference_ns)
+            true_offset = seconds_from_ns(truth.dive_clock.apply(int(true_ns[0])) - reference_ns)
+            dives = [(p.stamps_s - seconds_from_ns(reference_ns), p.depth_m) for p in profiles]
             n += 1
             old = old_rule(traj_t, z, dives, 0.5)
             if old is None:

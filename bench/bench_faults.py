@@ -110,6 +110,7 @@ def imu_of(path: Path) -> np.ndarray:
 
 def sigkill(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> None:
     from field.record.recover import recover
+    from shared.clock import seconds_from_ns
 
     out = work / f"kill{row.trials}"
     proc = subprocess.Popen(
@@ -129,7 +130,7 @@ def sigkill(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> No
     row.recover_s.append(time.monotonic() - t0)
     logs = imu_of(report.output)
     row.kept.append(len(logs) / IMU_HZ)
-    row.lost.append(max((killed_ns - int(logs[-1])) * 1e-9, 0.0))
+    row.lost.append(max(seconds_from_ns(killed_ns - int(logs[-1])), 0.0))
 
 
 def disk_watermark(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> None:
@@ -198,6 +199,7 @@ def _in_process_recording(
 def camera_unplug(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> None:
     from field.record.inspect import inspect_file
     from shared.archive import ArchiveReader
+    from shared.clock import seconds_from_ns
 
     outage_s = rng.uniform(0.5, 2.0)
     extra = {"camera_unplug_at_s": rng.uniform(0.5, 1.5), "camera_unplug_for_s": outage_s}
@@ -206,9 +208,9 @@ def camera_unplug(row: Row, rng: random.Random, work: Path, sim: dict[str, Any])
     with ArchiveReader(path) as reader:
         imu = reader.read_imu("/imu0").stamps_ns
         video = np.array([m.stamp_ns for _, _, m in reader.messages(["/cam0/video"])])
-    holes = np.diff(imu) * 1e-9
+    holes = seconds_from_ns(np.diff(imu))
     missing_imu = int(np.sum(np.round(holes * IMU_HZ) - 1))
-    camera_gap_s = float(np.diff(video).max()) * 1e-9
+    camera_gap_s = seconds_from_ns(int(np.diff(video).max()))
     gaps = [e for e in inspect_file(path).source_gaps if e.source == "/cam0/video"]
     if outage_s > 1.0 and not gaps:
         row.corrupt += 1  # an outage longer than the silence limit must be on /health
@@ -220,15 +222,17 @@ def camera_unplug(row: Row, rng: random.Random, work: Path, sim: dict[str, Any])
 def clock_step(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> None:
     from field.record.inspect import inspect_file
     from shared.archive import iter_records_salvage
+    from shared.clock import ns_from_seconds, seconds_from_ns
 
     step_s = rng.choice([-1, 1]) * 10 ** rng.uniform(0, np.log10(3 * 3600))
     at_s = rng.uniform(0.5, 2.0)
+    step_ns, at_ns = ns_from_seconds(step_s), ns_from_seconds(at_s)
     real = time.time_ns
     start = real()
 
     def wall_ns() -> int:
         now = real()
-        return now + (round(step_s * 1e9) if now - start > at_s * 1e9 else 0)
+        return now + (step_ns if now - start > at_ns else 0)
 
     time.time_ns = wall_ns  # type: ignore[assignment]
     try:
@@ -242,7 +246,7 @@ def clock_step(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) ->
 
     with ArchiveReader(path) as reader:
         imu = reader.read_imu("/imu0").stamps_ns  # sensor stamps: receive times jitter
-    holes = int(np.count_nonzero(np.diff(imu) * 1e-9 > 3 / IMU_HZ))
+    holes = int(np.count_nonzero(seconds_from_ns(np.diff(imu)) > 3 / IMU_HZ))
     steps = [e.details["step_s"] for e in inspect_file(path).clock_steps]
     if len(steps) != 1 or abs(steps[0] - step_s) > 0.1:
         row.corrupt += 1  # the step must be recorded, once, with its size

@@ -96,6 +96,7 @@ from shared.calibration.aprilgrid_detection import (
     homography_residuals_px,
     line_fit_residuals_px,
 )
+from shared.clock import seconds_from_ns
 from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose, make_pose, pose_difference, rotation_mean_chordal
 from shared.trajectory import Trajectory
@@ -268,7 +269,7 @@ def make_fieldsim_survey(
         slam_poses = []
         previous = int(stamps[0])
         for i, stamp in enumerate(stamps):
-            dt = (int(stamp) - previous) / 1e9
+            dt = seconds_from_ns(int(stamp) - previous)
             previous = int(stamp)
             # Visual-inertial SLAM sees gravity: roll and pitch stay bounded, yaw drifts.
             drift_rot += rng.normal(0, np.deg2rad(0.02) * np.sqrt(dt), 3) * axes

@@ -64,6 +64,7 @@ from postproc.slam.stage import SlamOptions
 from postproc.slam.stage import run as run_slam
 from postproc.slam.types import FloatArray
 from postproc.slam.visual_only import VisualOnlyEstimator
+from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.errors import StageError
 from shared.formats.euroc import read_euroc
 from shared.formats.tum import read_tum
@@ -189,7 +190,7 @@ def long_dive(minutes: float, window: int) -> None:
             cpu += time.process_time() - c0
             kf_since += 1
         if n in report_at:
-            minute = (frame.stamp_ns - seq.frames[0].stamp_ns) * 1e-9 / 60
+            minute = seconds_from_ns(frame.stamp_ns - seq.frames[0].stamp_ns) / 60
             print(
                 f"minute {minute:5.1f}: keyframes {estimator.backend.num_keyframes:5d} "
                 f"(in window {estimator.backend.active_keyframes:4d}), RSS {_rss_mb():7.0f} MB "
@@ -248,7 +249,7 @@ def rendered(
         euroc = folder / "euroc"
         data = read_euroc(euroc)
         assert data.groundtruth is not None and data.camera is not None
-        shift_ns = round(data.camera.timeshift_cam_imu_s * 1e9)
+        shift_ns = ns_from_seconds(data.camera.timeshift_cam_imu_s)
         for use_imu in (True, False):
             out = work / f"slam_{survey.name}_{folder.name}_w{width}_{'vio' if use_imu else 'vo'}"
             options = SlamOptions(frontend=FrontendOptions(width_px=width), use_imu=use_imu)
@@ -422,7 +423,7 @@ def _leica(path: Path) -> Trajectory:
             continue
         t, *xyz = line.split()
         seconds, _, fraction = t.partition(".")
-        stamps.append(int(seconds) * 1_000_000_000 + int((fraction + "000000000")[:9]))
+        stamps.append(int(seconds) * NS_PER_S + int((fraction + "000000000")[:9]))
         positions.append([float(v) for v in xyz])
     poses = np.tile(np.eye(4), (len(stamps), 1, 1))
     poses[:, :3, 3] = positions
@@ -485,7 +486,7 @@ def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict
     keyframes = read_tum(out / "keyframes.tum")
     trajectory = read_tum(out / "trajectory.tum")
     speeds = np.linalg.norm(np.diff(keyframes.positions, axis=0), axis=1) / np.maximum(
-        np.diff(keyframes.stamps_ns) * 1e-9, 1e-9
+        seconds_from_ns(np.diff(keyframes.stamps_ns)), 1e-9
     )
     row["max_keyframe_speed_m_s"] = float(speeds.max()) if len(speeds) else float("nan")
     try:
