@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from postproc.pipeline.options import Flag, add_flags, options_from_args
+from postproc.pipeline.options import Flag, add_flags_lazily, options_from_args
 
 EXAMPLE = """\
 example:
@@ -56,7 +56,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--dive", required=True, type=Path, help="dive CSV or dive folder")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     # The stage's options: type, default, choices and help from DepthOptions itself.
-    add_flags(parser, _options_type(), DEPTH_FLAGS)
+    add_flags_lazily(parser, _options_type, DEPTH_FLAGS)
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     parser.set_defaults(handler=_depth)
 

@@ -23,6 +23,7 @@ import dataclasses
 import re
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -230,6 +231,39 @@ def add_flags(parser: argparse.ArgumentParser, cls: type, flags: list[Flag]) -> 
             kwargs["metavar"] = flag.metavar or f.name.upper()
         del optional
         parser.add_argument(flag.name, **kwargs)
+
+
+class _LazyFlagsParser(argparse.ArgumentParser):
+    """A subcommand's parser whose option flags are added when it is first used (parsed,
+    or its help shown), so that building the whole command line imports no stage."""
+
+    def _add_lazy_flags(self) -> None:
+        add = self.__dict__.pop("_lazy_flags", None)
+        if add is not None:
+            add(self)
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Any = None, namespace: Any = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        self._add_lazy_flags()
+        return super().parse_known_args(args, namespace)
+
+    def format_help(self) -> str:
+        self._add_lazy_flags()
+        return super().format_help()
+
+    def format_usage(self) -> str:
+        self._add_lazy_flags()
+        return super().format_usage()
+
+
+def add_flags_lazily(
+    parser: argparse.ArgumentParser, options_type: Callable[[], type], flags: list[Flag]
+) -> None:
+    """`add_flags` on first use of `parser` (a subcommand's): `options_type` imports the
+    stage's options class only then, and `wreckmap-post --help` stays instant."""
+    parser.__class__ = _LazyFlagsParser
+    parser._lazy_flags = lambda p: add_flags(p, options_type(), flags)  # type: ignore[attr-defined]
 
 
 def options_from_args(cls: type, args: argparse.Namespace, flags: list[Flag]) -> Any:

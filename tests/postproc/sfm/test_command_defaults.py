@@ -19,7 +19,9 @@ from shared.errors import InputError
 def _sfm_parser():  # type: ignore[no-untyped-def]
     parser = build_parser("wreckmap-post", DESCRIPTION, COMMAND_MODULES)
     sub = next(a for a in parser._actions if a.dest == "command")
-    return parser, sub.choices["sfm"]
+    sfm = sub.choices["sfm"]
+    sfm.format_help()  # the stage's flags are added on first use
+    return parser, sfm
 
 
 def test_sfm_help_defaults_match_the_stage() -> None:
