@@ -336,6 +336,62 @@ CORPUS_EXPECTED: dict[str, tuple[str, object]] = {
     # times without 'min'): 1702 samples, the first seven with an empty temperature
     # (temp=' C'), kept without one as Subsurface keeps them.
     "Poseidon_MkVILog.xml": (IMPORTS, [("2011-06-14T11:20:00", 1702, 35.5)]),
+    # Subsurface's "a bit of everything" logbook: 18 <dive>s in 11 trips, 26 divecomputers
+    # (one profile each, in file order, so not in start order): up to three computers on
+    # one dive (Uemis, OSTC 2N, Petrel), manual and planned dives (the planner's notes in
+    # escaped HTML, negative planned pressures), a CCR dive, a picture, extradata. Every
+    # dive has a date and every divecomputer samples: none is skipped.
+    "abitofeverything.ssrf": (
+        IMPORTS,
+        [
+            ("2010-12-05T11:26:00", 52, 11.28),
+            ("2011-01-01T17:00:00", 30, 30.0),
+            ("2011-10-21T12:58:49", 791, 35.6),
+            ("2011-10-22T09:12:55", 828, 40.9),
+            ("2011-10-22T13:33:50", 839, 30.67),
+            ("2011-12-02T11:00:00", 6, 70.0),
+            ("2011-12-02T12:00:00", 7, 70.0),
+            ("2011-12-02T13:00:00", 7, 70.0),
+            ("2014-01-09T14:22:03", 7, 15.0),  # the divecomputer's own date, as test31
+            ("2013-06-01T12:24:09", 755, 24.06),
+            ("2013-06-01T12:22:00", 402, 24.067),
+            ("2013-06-01T12:23:41", 376, 24.293),
+            ("2013-06-04T10:04:18", 731, 31.18),
+            ("2013-06-04T10:02:00", 390, 31.235),
+            ("2013-06-04T10:03:06", 371, 31.151),
+            ("2013-06-04T12:28:06", 708, 27.54),
+            ("2013-06-04T12:26:00", 379, 27.76),
+            ("2013-06-04T12:26:48", 360, 27.828),
+            ("2013-12-28T06:56:12", 7, 25.0),
+            ("2014-03-15T21:44:06", 16, 15.0),
+            ("2014-04-01T07:00:00", 7, 70.0),
+            ("2014-04-02T10:00:00", 2485, 38.974),  # test40.xml's CCR dive
+            ("2014-09-21T14:25:00", 1073, 44.444),
+            ("2014-09-21T14:22:00", 254, 45.224),
+            ("2014-09-21T14:23:40", 224, 45.446),
+            ("2020-05-03T14:24:14", 19, 60.0),
+        ],
+    ),
+}
+
+# abitofeverything.ssrf: the divecomputers whose recorded <depth max> is not the deepest
+# sample within 0.01 m, with that maximum. The dive computer's own maximum falls between
+# the samples it kept (Uemis every 4-5 s, OSTC 2N / Petrel every 10 s, the CCR OSTC 3
+# every 2 s); one Petrel's deepest 10-s sample (45.446 m) is below its recorded 45.415 m.
+ABITOFEVERYTHING_OTHER_MAXIMUM = {
+    "2011-10-21T12:58:49": 36.01,
+    "2011-10-22T09:12:55": 41.39,
+    "2011-10-22T13:33:50": 31.0,
+    "2013-06-01T12:24:09": 24.43,
+    "2013-06-01T12:22:00": 24.08,
+    "2013-06-01T12:23:41": 24.384,
+    "2013-06-04T10:04:18": 31.52,
+    "2013-06-04T10:02:00": 31.27,
+    "2013-06-04T10:03:06": 31.699,
+    "2013-06-04T12:28:06": 28.17,
+    "2013-06-04T12:26:48": 28.042,
+    "2014-04-02T10:00:00": 38.99,
+    "2014-09-21T14:23:40": 45.415,
 }
 
 # The same dives read by another program and by Subsurface: our reading of the files
@@ -541,3 +597,29 @@ def test_test40_uddf_is_test40_xml_at_centimetres() -> None:
     np.testing.assert_allclose(uddf.depth_m, xml.depth_m, rtol=0, atol=0.005 + 1e-9)
     np.testing.assert_array_equal(np.isnan(uddf.temperature_c), np.isnan(xml.temperature_c))
     np.testing.assert_allclose(uddf.temperature_c, xml.temperature_c, rtol=0, atol=1e-9)
+
+
+def test_abitofeverything_against_its_recorded_maxima() -> None:
+    """Every <dive> of abitofeverything.ssrf has a date and samples on each divecomputer
+    (none to skip); our profiles are its divecomputers, sample for sample, and the
+    deepest sample is the recorded <depth max> within 0.01 m except where listed."""
+    path = CORPUS / "abitofeverything.ssrf"
+    root = ET.parse(path).getroot()
+    dives = list(root.iter("dive"))
+    assert len(dives) == 18
+    assert all(d.get("date") for d in dives)
+    assert all(c.findall("sample") for d in dives for c in d.findall("divecomputer"))
+    theirs = subsurface_reading(path)
+    ours = read_logbook(path)
+    assert len(ours) == len(theirs) == 26
+    listed = dict(ABITOFEVERYTHING_OTHER_MAXIMUM)
+    for dive, (samples, deepest, recorded) in zip(ours, theirs, strict=True):
+        assert dive.stamps_s.size == samples
+        assert dive.max_depth_m == pytest.approx(deepest, abs=1e-9)
+        other = listed.pop(dive.start_iso, None)
+        if other is None:
+            assert dive.max_depth_m == pytest.approx(recorded, abs=0.01)
+        else:
+            assert recorded == other
+            assert abs(dive.max_depth_m - recorded) > 0.01
+    assert not listed
