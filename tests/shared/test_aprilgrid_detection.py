@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from postproc.merge.synthetic import PlacedTarget, default_camera, look_at, render_view
 
 from shared.calibration.aprilgrid import AprilGridTarget
 from shared.calibration.aprilgrid_detection import (
@@ -16,7 +15,8 @@ from shared.calibration.aprilgrid_detection import (
     to_gray,
 )
 from shared.calibration.cameras import PinholeEquidistant
-from shared.geometry import invert_pose
+from shared.geometry import invert_pose, look_at
+from sim.targets import PlacedTarget, default_camera, render_view
 
 
 def _corner_errors(camera, grid, world_from_cam, image):
