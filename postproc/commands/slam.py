@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from postproc.pipeline.options import Flag, add_flags_lazily, options_from_args
+
 EXAMPLE = """\
 example:
   wreckmap-post slam sessions/dive1 --out results/dive1/slam
@@ -16,6 +18,17 @@ keyframes.tum (camera poses of keyframes), keyframes/<ns>.png, calib/,
 map.ply and stats.json, in a gravity-aligned frame (z up) whose origin is the
 first keyframe.
 """
+
+
+# The flags of SlamOptions' fields (names kept from the first command line): --width is
+# the frontend's width_px, --no-imu turns use_imu off, --max-speed 0 turns the check off.
+SLAM_FLAGS = [
+    Flag(field="frontend.width_px", flag="--width", metavar="PX"),
+    Flag(field="use_imu", flag="--no-imu", negate=True),
+    Flag(field="max_frames", metavar="N"),
+    Flag(field="max_speed_m_s", flag="--max-speed", zero_is_none=True, metavar="M_S"),
+    Flag(field="gyro_check"),
+]
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -31,47 +44,22 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--out", required=True, type=Path, help="SLAM result folder to write")
     parser.add_argument("--calib", type=Path, help="Kalibr camchain.yaml (overrides the input's)")
     parser.add_argument("--imu", type=Path, help="Kalibr imu.yaml (overrides the input's)")
-    parser.add_argument(
-        "--width",
-        type=int,
-        default=960,
-        help="frontend image width, px; wider images are shrunk (0: as recorded)",
-    )
-    parser.add_argument(
-        "--no-imu",
-        action="store_true",
-        help="visual-only baseline (arbitrary scale, not gravity-aligned)",
-    )
-    parser.add_argument("--max-frames", type=int, help="stop after this many images")
-    parser.add_argument(
-        "--max-speed",
-        type=float,
-        default=10.0,
-        help="m/s between keyframes above which the estimate counts as diverged (0: no check)",
-    )
-    parser.add_argument(
-        "--gyro-check",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="compare the images' rotation with the gyro first: fixes a guessed focal length "
-        "and time shift, and detects stabilised video (auto: only when the calibration is "
-        "a guess)",
-    )
+    # The stage's options: type, default, choices and help from SlamOptions itself.
+    add_flags_lazily(parser, _options_type, SLAM_FLAGS)
     parser.add_argument("--overwrite", action="store_true", help="replace an existing result")
     parser.set_defaults(handler=_run)
 
 
-def _run(args: argparse.Namespace) -> int:
-    from postproc.slam.frontend import FrontendOptions
-    from postproc.slam.stage import SlamOptions, run
+def _options_type() -> type:
+    from postproc.slam.options import SlamOptions
 
-    options = SlamOptions(
-        frontend=FrontendOptions(width_px=args.width),
-        use_imu=not args.no_imu,
-        max_frames=args.max_frames,
-        max_speed_m_s=args.max_speed if args.max_speed > 0 else None,
-        gyro_check=args.gyro_check,
-    )
+    return SlamOptions
+
+
+def _run(args: argparse.Namespace) -> int:
+    from postproc.slam.stage import run
+
+    options = options_from_args(_options_type(), args, SLAM_FLAGS)
     out = run(
         options,
         args.input,

@@ -63,112 +63,14 @@ from typing import Any
 
 import numpy as np
 
+from postproc.slam.options import GRAVITY_M_S2 as GRAVITY_M_S2
+from postproc.slam.options import BackendOptions as BackendOptions
 from postproc.slam.types import FloatArray, ImuSamples, IntArray
 from shared.calibration.kalibr import ImuNoise
 from shared.errors import StageError
 from shared.geometry import invert_pose, make_pose
 
 LOG = logging.getLogger(__name__)
-
-GRAVITY_M_S2 = 9.81
-
-
-@dataclass(kw_only=True)
-class BackendOptions:
-    """Settings of the smoother (units in the names).
-
-    pixel_sigma_px: standard deviation of a tracked feature position (frontend pixels).
-    huber_k: Huber threshold in standard deviations (robust to leftover outliers).
-    min_parallax_deg: smallest angle between a landmark's extreme rays to add it.
-    min_observations: keyframes that must see a track before it becomes a landmark.
-    max_reprojection_px: triangulation check (frontend pixels).
-    max_gate_px: a new observation of a landmark farther than this from its predicted
-        projection (frontend pixels) is dropped.
-    min_depth_m / max_depth_m: accepted landmark depth in front of each camera.
-    imu_noise_inflation: multiplies the Kalibr noise densities and random walks
-        (datasheet values are optimistic on a vibrating, warming diver rig).
-    min_gyroscope_random_walk / min_accelerometer_random_walk: floors on the bias random
-        walks (rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz)) after inflation. A gyro walk far below
-        the bias prior makes the bias-to-bias term of every IMU factor 1e7-1e8 times
-        stiffer than the prior, and Cholesky then declares the very first update
-        indeterminate (a RealSense's Kalibr file says 2.6e-6: ISAM2 failed at keyframe 1,
-        "Symbol: b0"). The floors sit at the best MEMS parts' values (EuRoC's ADIS16448:
-        1.9e-5 and 3e-3), below the simulator's 2e-5 and 3e-4, so calibrated consumer
-        IMUs are left as they are.
-    prior_tilt_sigma_rad: first keyframe roll/pitch uncertainty (gravity from a mean
-        accelerometer reading); yaw and position are fixed (they define S).
-    prior_velocity_sigma_m_s: first keyframe velocity around zero (diver speeds < 1 m/s).
-    weak_velocity_sigma_m_s: a prior around zero on every later keyframe's velocity,
-        so that no state is ever without a prior of its own (0: none); at 10 m/s its
-        information is a ten-millionth of what one IMU factor gives.
-    prior_accel_bias_sigma_m_s2 / prior_gyro_bias_sigma_rad_s: initial bias uncertainty.
-    zero_velocity_sigma_m_s: strength of the zero-velocity constraint while still.
-    landmark_prior_sigma_m: a weak prior on each new landmark at its triangulated
-        position (0: none). Without it a landmark whose observations the Huber loss
-        down-weights, or whose rays are nearly parallel, can make the Cholesky
-        factorisation fail ("indeterminant system") and end the run; at 10 m its
-        information is under 1 % of what two 2-degree-parallax rays give at 10 m depth.
-    relinearize_threshold: ISAM2 relinearisation threshold (tangent-space units).
-    extra_iterations: additional ISAM2 updates after each keyframe.
-    factorization: ISAM2's "QR" (slower, survives the poor conditioning of long
-        IMU-only stretches, whose tiny bias random walks Cholesky rejects) or "CHOLESKY".
-        When a Cholesky update stays indeterminate after the rebuild, the smoother is
-        rebuilt once more with QR and keeps QR from then on (`stats.qr_fallbacks`).
-    final_batch: refine the window's graph with Levenberg-Marquardt at the end.
-    window_keyframes: keyframes kept in the smoother after a retirement (0: keep all,
-        full smoothing, memory grows with the dive). ISAM2 takes about 5 MB per
-        keyframe of the window (measured, 80 features a frame): 150 (+100 step) held
-        a 45-minute dive at +1.3 GB, flat, with 4.3 cm ATE over 878 m.
-    window_step_keyframes: keyframes retired at once (rebuilding ISAM2 costs one batch
-        elimination of the window, so it is done in steps, not per keyframe).
-    anchor_*: priors on the first kept keyframe's pose, velocity and biases after a
-        retirement (they stand for the retired part of the dive).
-    max_landmark_drops: a recovery that finds one more ill-posed landmark drops it too,
-        up to this many times, before it falls back to QR.
-    recovery_*: weak priors put on the keyframe states GTSAM names when an ISAM2
-        update finds the system indeterminate (see `_update_or_recover`); weak enough
-        not to pull a well-constrained state, they only fill an unconstrained direction.
-    pose_graph_rotation_sigma_rad / pose_graph_translation_sigma_m: uncertainty of the
-        relative pose between consecutive keyframes in the global pose graph.
-    gravity_m_s2: magnitude of gravity.
-    """
-
-    pixel_sigma_px: float = 1.0
-    huber_k: float = 2.0
-    min_parallax_deg: float = 2.0
-    min_observations: int = 3
-    max_reprojection_px: float = 4.0
-    max_gate_px: float = 15.0
-    min_depth_m: float = 0.2
-    max_depth_m: float = 40.0
-    imu_noise_inflation: float = 1.0
-    min_gyroscope_random_walk: float = 1.0e-5
-    min_accelerometer_random_walk: float = 1.0e-4
-    prior_tilt_sigma_rad: float = 0.03
-    prior_velocity_sigma_m_s: float = 0.5
-    weak_velocity_sigma_m_s: float = 10.0
-    prior_accel_bias_sigma_m_s2: float = 0.1
-    prior_gyro_bias_sigma_rad_s: float = 0.01
-    zero_velocity_sigma_m_s: float = 0.005
-    landmark_prior_sigma_m: float = 10.0
-    relinearize_threshold: float = 0.1
-    extra_iterations: int = 0
-    factorization: str = "CHOLESKY"
-    final_batch: bool = True
-    window_keyframes: int = 150
-    window_step_keyframes: int = 100
-    anchor_rotation_sigma_rad: float = 0.002
-    anchor_position_sigma_m: float = 0.005
-    anchor_velocity_sigma_m_s: float = 0.02
-    anchor_accel_bias_sigma_m_s2: float = 0.02
-    anchor_gyro_bias_sigma_rad_s: float = 0.001
-    recovery_rotation_sigma_rad: float = 0.1
-    max_landmark_drops: int = 5
-    recovery_position_sigma_m: float = 1.0
-    recovery_velocity_sigma_m_s: float = 0.5
-    pose_graph_rotation_sigma_rad: float = 0.003
-    pose_graph_translation_sigma_m: float = 0.01
-    gravity_m_s2: float = GRAVITY_M_S2
 
 
 @dataclass

@@ -27,12 +27,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from postproc.slam.backend import BackendOptions, KeyframeState, VisualInertialBackend
+from postproc.slam.backend import KeyframeState, VisualInertialBackend
 from postproc.slam.initialization import (
     AlignmentResult,
     ImuStillness,
@@ -44,88 +44,15 @@ from postproc.slam.initialization import (
     session_from_body_rotation,
     translation_direction,
 )
-from postproc.slam.keyframes import KeyframeDecision, KeyframeOptions, KeyframeSelector
-from postproc.slam.loop_closure import Descriptors, LoopClosureOptions, LoopDetector
+from postproc.slam.keyframes import KeyframeDecision, KeyframeSelector
+from postproc.slam.loop_closure import Descriptors, LoopDetector
+from postproc.slam.options import EstimatorOptions as EstimatorOptions
 from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
 from shared.calibration.kalibr import ImuNoise
 from shared.errors import StageError
 from shared.geometry import invert_pose, make_pose, so3_exp, so3_log
 
 LOG = logging.getLogger(__name__)
-
-
-@dataclass(kw_only=True)
-class EstimatorOptions:
-    """How frames become keyframes and states.
-
-    keyframes / backend / loop_closure: see KeyframeOptions, BackendOptions,
-        LoopClosureOptions.
-    gravity_window_s: accelerometer averaging window after the first keyframe (s; cut
-        to the IMU data), each sample turned into the first keyframe's frame by the gyro.
-        Long, because a start is not always at rest: the Karma drone sample accelerates
-        at 2-3 m/s^2 for its first 5 s, which tilts a 1 s mean by 11-16 degrees (and the
-        0.03 rad tilt prior then holds that error); over 10 s the tilt left is
-        Delta-v / (g T), 4 degrees there, and the smoother takes it out. Simulated
-        dives (bench_slam, 30 s): feature-level ATE 0.8 / 2.7 / 9.6 mm with 1 s, 0.8 /
-        2.4 / 9.5 mm with 10 s; rendered 3.7 mm vs 4.1 mm (max error 10.2 vs 8.6 mm).
-    gravity_tolerance_m_s2: a start whose mean specific force differs from gravity by
-        more than this is refused and retried at the next keyframe (an accelerometer
-        still waking up, or one logging in g): over the gravity window a moving body's
-        mean departs from g by its change of velocity over the window, well under this.
-    init_min_keyframes: keyframes buffered before the visual-inertial alignment is tried.
-    init_min_parallax_deg: median ray angle to the first keyframe needed to try it.
-    init_min_condition: smallest accepted conditioning of the alignment (scale observable).
-    init_max_s: after this long without a good alignment, start from rest (v = 0): a
-        hovering diver never gives scale, and waiting forever would lose the start.
-    rest_window_s: length of the IMU windows that `initialization.imu_stillness`
-        judges around the first keyframe. When the body rests there and the next
-        keyframe's images agree (no derotated flow: the IMU alone cannot tell rest from a
-        glide at constant velocity), the backend starts at rest: gravity, the gyro bias
-        and the accelerometer bias along gravity from the still IMU, zero velocity held
-        to `rest_velocity_sigma_m_s`. A start in motion waits for the alignment instead.
-    rest_max_gyro_std_rad_s / rest_max_accel_std_m_s2: the spread of the IMU samples
-        below which the body counts as resting (see `imu_stillness`).
-    segment_join_rotation_sigma_rad / segment_join_translation_sigma_m: how loosely the
-        final pose graph holds the IMU-predicted step from one map segment to the next
-        when a loop closes between segments.
-    rest_lookback_s: a rest that ended up to this long before the first keyframe (a
-        recording that starts at rest, the camera's first frame coming later) still
-        starts the estimate: the IMU carries the rest's attitude and zero velocity to the
-        first keyframe, the velocity sigma growing by `rest_velocity_growth_m_s2` per
-        second (a 0.01 rad tilt error is 0.1 m/s^2; an accelerometer bias as much).
-    still_max_flow_px: median feature motion (frontend pixels) between keyframes, with
-        the gyro-predicted rotation removed, below which the camera counts as not
-        translating (zero-velocity update).
-    timeshift_cam_imu_s: Kalibr's camera-to-IMU time shift (t_imu = t_cam + shift).
-    blind_keyframe_interval_s: while frames carry no tracks (open water, the camera
-        blocked), at most one keyframe per this many seconds (0: no limit). Blind
-        keyframes hold nothing but IMU; at the selector's rate (up to 5 per second,
-        "few tracks") their chain of short, stiff IMU factors left the smoother's
-        system so ill-conditioned (position drift ~12 m against 1e10 bias-walk
-        information) that ISAM2's Cholesky failed after about 20 s blind (issue #7).
-        One long IMU factor per interval carries the same information, well scaled.
-    """
-
-    keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
-    backend: BackendOptions = field(default_factory=BackendOptions)
-    loop_closure: LoopClosureOptions = field(default_factory=LoopClosureOptions)
-    gravity_window_s: float = 10.0
-    gravity_tolerance_m_s2: float = 3.0
-    still_max_flow_px: float = 1.5
-    timeshift_cam_imu_s: float = 0.0
-    init_min_keyframes: int = 4
-    init_min_parallax_deg: float = 2.0
-    init_min_condition: float = 1e-3
-    init_max_s: float = 5.0
-    rest_window_s: float = 0.5
-    rest_max_gyro_std_rad_s: float = 0.01
-    rest_max_accel_std_m_s2: float = 0.1
-    rest_velocity_sigma_m_s: float = 0.02
-    segment_join_rotation_sigma_rad: float = 0.05
-    segment_join_translation_sigma_m: float = 0.5
-    rest_lookback_s: float = 2.0
-    rest_velocity_growth_m_s2: float = 0.2
-    blind_keyframe_interval_s: float = 5.0
 
 
 @dataclass

@@ -31,62 +31,15 @@ coordinates.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from postproc.slam.options import FrontendOptions as FrontendOptions
 from postproc.slam.types import FloatArray, FrameTracks, IntArray
 from shared.calibration.cameras import CameraModel
 
 Image = npt.NDArray[np.uint8]
-
-
-@dataclass(kw_only=True)
-class FrontendOptions:
-    """Frontend settings (pixels are frontend-image pixels unless said otherwise).
-
-    width_px: wider images are shrunk to this width (height keeps the aspect); 0 or
-        a larger value keeps the recorded size.
-    clahe: contrast-limited histogram equalisation; clahe_clip_limit, clahe_tiles.
-    max_features: features kept per frame (SVIn2 GoPro: 400).
-    grid_cols / grid_rows: detection grid; each cell gets an equal share.
-    min_distance_px: minimum spacing of features.
-    quality_level: Shi-Tomasi quality relative to the best corner of the cell.
-    klt_window_px / klt_levels: Lucas-Kanade window size and pyramid levels.
-    max_forward_backward_px: forward-backward consistency bound.
-    ransac_threshold_px: epipolar distance bound of the essential-matrix RANSAC.
-    border_px: features closer than this to the image border are dropped.
-    weak_quality_factor / weak_fill_below: when a frame ends up with fewer than
-        `weak_fill_below` features, the grid cells short of their share are searched
-        again at `quality_level * weak_quality_factor` (1: never). Only then: in a
-        textured image weak corners track worse than the strong ones they would join
-        (the visual-only path on EuRoC MH_01 failed with them everywhere).
-    drought_min_tracks / drought_max_s / anchor_min_tracks: below `drought_min_tracks`
-        surviving tracks the frontend re-tracks the anchor (the last frame that kept at
-        least `anchor_min_tracks`) if it is at most `drought_max_s` old.
-    """
-
-    width_px: int = 960
-    clahe: bool = True
-    clahe_clip_limit: float = 2.0
-    clahe_tiles: int = 8
-    max_features: int = 400
-    grid_cols: int = 8
-    grid_rows: int = 5
-    min_distance_px: int = 12
-    quality_level: float = 0.01
-    klt_window_px: int = 15
-    klt_levels: int = 3
-    max_forward_backward_px: float = 1.0
-    ransac_threshold_px: float = 1.0
-    border_px: int = 4
-    weak_quality_factor: float = 0.1
-    weak_fill_below: int = 200
-    drought_min_tracks: int = 40
-    drought_max_s: float = 2.0
-    anchor_min_tracks: int = 80
 
 
 class _UndistortTable:

@@ -66,48 +66,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from postproc.slam.options import GyroCheckOptions as GyroCheckOptions
 from postproc.slam.types import FloatArray, ImuSamples, IntArray
 from shared.geometry import so3_log
-
-
-@dataclass(kw_only=True)
-class GyroCheckOptions:
-    """Settings of the gyro / image rotation comparison.
-
-    probe_s: seconds of video tracked for the check before the main pass (the check
-        runs only when the calibration is a guess, see `SlamOptions.gyro_check`).
-    max_shift_s: time offsets searched, +-seconds (t_imu = t_cam + shift).
-    shift_step_s: resolution of the offset search.
-    min_rotation_px: pairs whose gyro rotation moves the image centre by at least this
-        many pixels (at the guessed focal) take part in the gain and rigidity fits.
-    still_rotation_px: pairs whose gyro rotation stays below this many pixels bound
-        the images' rotation noise (`visual_noise_px`, with the second differences).
-    min_pairs: fewer turning pairs: too little rotation to say anything ("unknown").
-    strong_min_pairs: turning pairs needed before the video may be declared "not rigid".
-    focal_scale_range: accepted focal corrections (outside: not a rigid camera-IMU pair).
-    max_unexplained: above this share of unexplained gyro rotation the camera does not
-        turn with the IMU (stabilised video, or a wrong axis convention).
-    max_gain_relative_error: a "rigid" gain must be known to this fraction of itself.
-    min_correlation: a "rigid" verdict needs the angular speeds correlated this well.
-    min_gain_sigmas: standard errors by which a gain must clear zero (images follow the
-        body) and miss the accepted range before "not rigid" is declared.
-    max_noise_fraction: "not rigid" needs the images' rotation noise bound below
-        this fraction of the gyro's median turn on the turning pairs.
-    """
-
-    probe_s: float = 20.0
-    max_shift_s: float = 0.15
-    shift_step_s: float = 0.002
-    min_rotation_px: float = 4.0
-    still_rotation_px: float = 1.0
-    min_pairs: int = 5
-    strong_min_pairs: int = 20
-    focal_scale_range: tuple[float, float] = (0.6, 1.7)
-    max_unexplained: float = 0.5
-    max_gain_relative_error: float = 0.1
-    min_correlation: float = 0.7
-    min_gain_sigmas: float = 3.0
-    max_noise_fraction: float = 0.5
 
 
 @dataclass(kw_only=True)

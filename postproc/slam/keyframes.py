@@ -22,27 +22,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from postproc.slam.options import KeyframeOptions as KeyframeOptions
 from postproc.slam.types import FloatArray, FrameTracks, IntArray
-
-
-@dataclass(kw_only=True)
-class KeyframeOptions:
-    """Thresholds of the keyframe rule.
-
-    overlap_threshold: new keyframe when the hull overlap falls to or below this (0..1).
-    match_ratio_threshold: new keyframe when the shared share falls to or below this (0..1).
-    min_interval_s / max_interval_s: bounds on the time between keyframes (seconds); the
-        0.5 s ceiling keeps at least 2 keyframes a second (SVIn2 ran at 1.6-3.4 Hz), which
-        halved the drift on the simulated surveys.
-    min_tracks: below this many features a frame becomes a keyframe as soon as allowed
-        (the scene is about to be lost).
-    """
-
-    overlap_threshold: float = 0.6
-    match_ratio_threshold: float = 0.2
-    min_interval_s: float = 0.2
-    max_interval_s: float = 0.5
-    min_tracks: int = 30
 
 
 def _hull_area(points: FloatArray) -> float:

@@ -25,42 +25,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from postproc.slam.options import LoopClosureOptions as LoopClosureOptions
 from postproc.slam.types import FloatArray, IntArray
 from shared.geometry import invert_pose, make_pose, so3_exp
 
 Descriptors = npt.NDArray[np.uint8]
-
-
-@dataclass(kw_only=True)
-class LoopClosureOptions:
-    """Loop detection settings.
-
-    enabled: look for loops at all.
-    max_distance_m / max_yaw_deg: geometric gate on the current estimates (SVIn2: 6 m, 30 deg).
-    min_time_gap_s: candidates must be at least this much older (no loop with the recent past).
-    max_candidates: nearest gated candidates verified per keyframe.
-    min_keyframes_between_loops: after a loop, skip this many keyframes (the next ones
-        would close the same loop again and only cost optimisation time).
-    ratio_test: Lowe's ratio for descriptor matches; max_hamming: absolute bound (bits).
-    min_inliers: PnP RANSAC inliers needed (SVIn2: 25).
-    pnp_reprojection_px: RANSAC threshold (frontend pixels).
-    rotation_sigma_rad / translation_sigma_m: uncertainty of a loop constraint.
-    cauchy_k: Cauchy loss scale (whitened units): a wrong loop must not wreck the map.
-    """
-
-    enabled: bool = True
-    max_distance_m: float = 6.0
-    max_yaw_deg: float = 30.0
-    min_time_gap_s: float = 15.0
-    max_candidates: int = 3
-    min_keyframes_between_loops: int = 5
-    ratio_test: float = 0.8
-    max_hamming: int = 64
-    min_inliers: int = 25
-    pnp_reprojection_px: float = 3.0
-    rotation_sigma_rad: float = 0.02
-    translation_sigma_m: float = 0.05
-    cauchy_k: float = 1.0
 
 
 @dataclass

@@ -51,14 +51,14 @@ import queue
 import threading
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
 import cv2
 import numpy as np
 
-from postproc.slam.estimator import EstimatorOptions, SlamEstimator, SlamResult
+from postproc.slam.estimator import SlamEstimator, SlamResult
 from postproc.slam.frontend import FrontendOptions, KltFrontend
 from postproc.slam.gyro_check import (
     GyroCheck,
@@ -69,6 +69,7 @@ from postproc.slam.gyro_check import (
 from postproc.slam.initialization import preintegrate
 from postproc.slam.inputs import SlamInput, open_input
 from postproc.slam.loop_closure import Descriptors, orb_descriptors
+from postproc.slam.options import SlamOptions as SlamOptions
 from postproc.slam.stabilised import gravity_and_scale
 from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
 from postproc.slam.visual_only import VisualOnlyEstimator
@@ -91,44 +92,6 @@ LOG = logging.getLogger(__name__)
 LANDMARKS_PLY_COMMENT = "wreckmap SLAM landmarks, session frame S, metres"
 
 T = TypeVar("T")
-
-
-@dataclass(kw_only=True)
-class SlamOptions:
-    """Everything the SLAM stage can be told.
-
-    frontend / estimator: see FrontendOptions, EstimatorOptions (keyframe rule and
-        backend inside).
-    use_imu: False runs the visual-only baseline (postproc.slam.visual_only): arbitrary
-        scale, S = first keyframe's body frame (not gravity-aligned), no loop closure.
-    max_frames: stop after this many images (None: all); for quick looks and tests.
-    min_tracks_ok: a frame with fewer tracked features counts as a tracking failure.
-    max_speed_m_s: a keyframe-to-keyframe speed above this (m/s) means the estimate has
-        diverged (too few landmarks to hold the IMU integration: scenes beyond
-        `max_depth_m`, a wrong calibration guess); the stage then raises StageError
-        instead of handing a wrong trajectory to depth fusion and SfM. A diver swims
-        below 1 m/s and a scooter reaches about 2.5 m/s; None turns the check off
-        (not applied to the visual-only baseline, whose scale is arbitrary).
-    gyro_check: compare the images' frame-to-frame rotation with the gyro over the first
-        `gyro_check_options.probe_s` seconds before the main pass
-        (postproc.slam.gyro_check). "auto": only when the input says its calibration is
-        a guess (GoPro import without --calib); "on"; "off". When the images turn
-        with the gyro, the measured time shift and focal scale replace the guessed
-        ones (written to calib/camchain.yaml); when they do not (a stabilised video),
-        the path comes from the visual-only estimator, put in a gravity-aligned frame,
-        metric when the IMU can weigh it, by postproc.slam.stabilised; stats.json
-        says which ("gyro_check", "mode", "metric_scale"). An explicit `camchain`
-        turns "auto" off.
-    """
-
-    frontend: FrontendOptions = field(default_factory=FrontendOptions)
-    estimator: EstimatorOptions = field(default_factory=EstimatorOptions)
-    use_imu: bool = True
-    max_frames: int | None = None
-    min_tracks_ok: int = 30
-    max_speed_m_s: float | None = 10.0
-    gyro_check: str = "auto"
-    gyro_check_options: GyroCheckOptions = field(default_factory=GyroCheckOptions)
 
 
 def _resolve_calibration(

@@ -190,3 +190,29 @@ def test_the_merge_command_keeps_its_flags_and_defaults() -> None:
         parse("--natural-features", "--no-natural-features")
     with pytest.raises(SystemExit):
         parse("--dof", "5")
+
+
+def test_the_slam_command_keeps_its_flags_and_defaults() -> None:
+    from postproc.commands.slam import SLAM_FLAGS, _options_type
+
+    slam_options = _options_type()
+    parser = argparse.ArgumentParser()
+    add_flags(parser, slam_options, SLAM_FLAGS)
+
+    def parse(*argv: str) -> object:
+        return options_from_args(slam_options, parser.parse_args(list(argv)), SLAM_FLAGS)
+
+    assert parse() == slam_options()
+    options = parse("--width", "640", "--no-imu", "--max-frames", "50", "--max-speed", "0",
+                    "--gyro-check", "off")  # fmt: skip
+    assert options.frontend.width_px == 640  # type: ignore[attr-defined]
+    assert options == slam_options(
+        frontend=type(slam_options().frontend)(width_px=640),
+        use_imu=False,
+        max_frames=50,
+        max_speed_m_s=None,
+        gyro_check="off",
+    )
+    assert parse("--max-speed", "2.5").max_speed_m_s == 2.5  # type: ignore[attr-defined]
+    with pytest.raises(SystemExit):
+        parse("--gyro-check", "maybe")
