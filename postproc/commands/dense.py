@@ -3,7 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+from postproc.pipeline.options import Flag, add_flags_lazily, options_from_args
+
+if TYPE_CHECKING:
+    from postproc.dense.options import DenseOptions
 
 EXAMPLE = """\
 example:
@@ -15,8 +22,24 @@ Reads the COLMAP model in SFM_DIR (sparse/, model/ or the folder itself) and its
 images (SFM_DIR/images or SFM_DIR/keyframes, or --images). Depth maps come from
 COLMAP PatchMatch when pycolmap has CUDA, else from CPU stereo. Writes workspace/
 (COLMAP dense workspace), fused.ply, mesh.ply and dense.json; an interrupted run
-resumes where it stopped.
+resumes where it stopped. A known --attenuation implies --colour-correction.
 """
+
+
+# The flags of DenseOptions' fields (names kept from the first command line): --images is
+# image_dir, --no-mesh turns make_mesh off, --threads sets both fusion's and meshing's
+# threads. One more alias in `_dense`: a known --attenuation turns --colour-correction on.
+DENSE_FLAGS = [
+    Flag(field="image_dir", flag="--images", metavar="DIR"),
+    Flag(field="max_image_size_px", flag="--max-image-size", metavar="PX"),
+    Flag(field="backend"),
+    Flag(field="meshing.octree_depth", metavar="N"),
+    Flag(field="make_mesh", flag="--no-mesh", negate=True),
+    Flag(field="colour_correction"),
+    Flag(field="colour.attenuation_per_m", flag="--attenuation", metavar=("R", "G", "B")),
+    Flag(field="colour.backscatter", metavar=("R", "G", "B")),
+    Flag(field="fusion.num_threads", flag="--threads", also=("meshing.num_threads",), metavar="N"),
+]
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -30,67 +53,30 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     parser.add_argument("sfm_dir", type=Path, metavar="SFM_DIR", help="SfM output folder")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
-    parser.add_argument("--images", type=Path, help="folder of the images the model names")
-    parser.add_argument(
-        "--max-image-size",
-        type=int,
-        default=960,
-        metavar="PX",
-        help="longest side of the undistorted images and depth maps (default: 960)",
-    )
-    parser.add_argument(
-        "--backend",
-        choices=("auto", "cpu", "patchmatch"),
-        default="auto",
-        help="depth maps: auto (PatchMatch when pycolmap has CUDA, else CPU), cpu, patchmatch",
-    )
-    parser.add_argument(
-        "--octree-depth", type=int, metavar="N", help="Poisson octree depth (default: from scene)"
-    )
-    parser.add_argument("--no-mesh", action="store_true", help="stop after fused.ply")
-    parser.add_argument(
-        "--colour-correction",
-        action="store_true",
-        help="also write fused_corrected.ply (attenuation removed) and mesh it",
-    )
-    parser.add_argument(
-        "--attenuation",
-        type=float,
-        nargs=3,
-        metavar=("R", "G", "B"),
-        help="known attenuation per channel (1/m); default: estimated from the points",
-    )
-    parser.add_argument(
-        "--backscatter",
-        type=float,
-        nargs=3,
-        metavar=("R", "G", "B"),
-        help="known veiling light per channel (linear 0..1; with --attenuation)",
-    )
-    parser.add_argument("--threads", type=int, default=-1, help="worker threads (-1: all cores)")
+    # The stage's options: type, default, choices and help from DenseOptions itself.
+    add_flags_lazily(parser, _options_type, DENSE_FLAGS)
     parser.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     parser.set_defaults(handler=_dense)
 
 
-def _dense(args: argparse.Namespace) -> int:
-    from postproc.dense.colour import ColourOptions
-    from postproc.dense.fusion import FusionOptions
-    from postproc.dense.meshing import MeshingOptions
-    from postproc.dense.stage import DenseOptions, run
+def _options_type() -> type:
+    from postproc.dense.options import DenseOptions
 
-    options = DenseOptions(
-        max_image_size_px=args.max_image_size,
-        backend=args.backend,
-        image_dir=args.images,
-        make_mesh=not args.no_mesh,
-        colour_correction=args.colour_correction or args.attenuation is not None,
-        colour=ColourOptions(
-            attenuation_per_m=tuple(args.attenuation) if args.attenuation else None,
-            backscatter=tuple(args.backscatter) if args.backscatter else None,
-        ),
-        fusion=FusionOptions(num_threads=args.threads),
-        meshing=MeshingOptions(octree_depth=args.octree_depth, num_threads=args.threads),
-    )
-    result = run(options, args.sfm_dir, args.out, overwrite=args.overwrite)
+    return DenseOptions
+
+
+def dense_options(args: argparse.Namespace) -> DenseOptions:
+    """The DenseOptions of the parsed flags; a known attenuation means colour correction
+    (the flag's help says so), as on the first command line."""
+    options: DenseOptions = options_from_args(_options_type(), args, DENSE_FLAGS)
+    if options.colour.attenuation_per_m is not None:
+        options = dataclasses.replace(options, colour_correction=True)
+    return options
+
+
+def _dense(args: argparse.Namespace) -> int:
+    from postproc.dense.stage import run
+
+    result = run(dense_options(args), args.sfm_dir, args.out, overwrite=args.overwrite)
     print(result)
     return 0

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
+from postproc.dense.options import ColourOptions as ColourOptions
 from shared.errors import StageError
 
 if TYPE_CHECKING:
@@ -30,20 +31,6 @@ FloatArray = npt.NDArray[np.float64]
 
 # Range bins (equal counts) of the attenuation fit.
 _RANGE_BINS = 24
-
-
-@dataclass(kw_only=True)
-class ColourOptions:
-    """attenuation_per_m, backscatter: known beta and B per R, G, B (None: estimate them);
-    gamma: display gamma of the images; white_balance: divide out the per-channel
-    illumination (grey world); min_range_span_m: smallest spread (5-95 %) of point ranges
-    that makes the estimate meaningful."""
-
-    attenuation_per_m: tuple[float, float, float] | None = None
-    backscatter: tuple[float, float, float] | None = None
-    gamma: float = 2.2
-    white_balance: bool = True
-    min_range_span_m: float = 0.5
 
 
 @dataclass

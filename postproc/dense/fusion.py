@@ -4,41 +4,10 @@ from __future__ import annotations
 
 import shutil
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
+from postproc.dense.options import FusionOptions as FusionOptions
 from shared.errors import OutputExistsError, StageError
-
-
-@dataclass(kw_only=True)
-class FusionOptions:
-    """COLMAP StereoFusionOptions we set (the rest keep COLMAP's defaults).
-
-    min_num_pixels: images that must agree on a point; max_reproj_error_px: reprojection
-    agreement; max_depth_error_rel: depth agreement as a fraction of the depth;
-    max_normal_error_deg: normal agreement (our CPU normals come from finite differences of
-    the depth, noisier than PatchMatch's, so the default is looser than COLMAP's 10);
-    check_num_images: overlapping images checked per reference image; input_type:
-    "geometric" (filtered maps) or "photometric".
-
-    min_num_pixels 2 and max_depth_error_rel 0.02 (looser than COLMAP's 5 and 0.01) were
-    measured on the simulated survey (640x360, true poses): completeness at 5 cm 58.7 ->
-    67.6 %, accuracy 99.9 -> 99.3 %. Far surfaces (5-8 m through hazy water) are matched
-    by few images and with depth errors near 1-2 %: the stricter rules dropped them.
-    min_num_pixels 1 since depth maps exist for reference views only (about a third of
-    the keyframes, `ViewSelectionOptions`): each far surface is then in fewer depth maps
-    (`bench_dense.py`, 960x540, 19 of 56 keyframes: accuracy / completeness at 5 cm
-    99.9 / 48.9 % with 2, 97.3 / 72.1 % with 1). Every depth kept already passed the
-    stereo's left-right check.
-    """
-
-    min_num_pixels: int = 1
-    max_reproj_error_px: float = 2.0
-    max_depth_error_rel: float = 0.02
-    max_normal_error_deg: float = 25.0
-    check_num_images: int = 50
-    input_type: str = "geometric"
-    num_threads: int = -1
 
 
 def fuse(

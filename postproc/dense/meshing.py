@@ -17,28 +17,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from postproc.dense.options import MeshingOptions as MeshingOptions
 from shared.errors import InputError, OutputExistsError, StageError
 from shared.formats.ply import PlyData, read_ply, write_ply
 
 FloatArray = npt.NDArray[np.float64]
-
-
-@dataclass(kw_only=True)
-class MeshingOptions:
-    """octree_depth: None to choose it from the scene, else fixed; min_depth, max_depth:
-    bounds of the choice; point_weight: screening weight (COLMAP's default 1);
-    poisson_trim: COLMAP's density trim (0: off, we trim by distance instead);
-    trim_distance_spacings: drop vertices farther than this many point spacings (or octree
-    cells, when coarser) from the fused points (0: keep everything); num_threads: -1 for
-    all cores."""
-
-    octree_depth: int | None = None
-    min_depth: int = 6
-    max_depth: int = 10
-    point_weight: float = 1.0
-    poisson_trim: float = 0.0
-    trim_distance_spacings: float = 2.5
-    num_threads: int = -1
 
 
 def point_spacing_m(points_m: npt.ArrayLike, *, sample: int = 20000, seed: int = 0) -> float:

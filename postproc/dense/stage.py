@@ -35,19 +35,16 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from postproc.dense.colmap_io import DenseWorkspace, PinholeView, read_array, write_array
-from postproc.dense.colour import ColourOptions
-from postproc.dense.fusion import FusionOptions
-from postproc.dense.meshing import MeshingOptions
+from postproc.dense.options import DenseOptions as DenseOptions
 from postproc.dense.stereo_cpu import CpuStereoOptions
-from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
 from shared.errors import InputError, StageError
 from shared.folders import DenseFolder, rebuild, result_stamp
 from shared.progress import MapFn, serial_map
@@ -60,45 +57,6 @@ MODEL_SUBDIRS = ("sparse", "model", "sparse/0", ".")
 IMAGE_SUBDIRS = ("images", "keyframes")
 # Fewer sparse points than this in an image: its depth range falls back to the option.
 _MIN_POINTS_FOR_RANGE = 10
-
-
-@dataclass(kw_only=True)
-class DenseOptions:
-    """What the dense stage does.
-
-    max_image_size_px: longest side of the undistorted images (and so of the depth maps).
-    backend: "auto" (PatchMatch when pycolmap has CUDA, else CPU), "cpu" or "patchmatch".
-    image_dir: the images the model names (None: look beside the model).
-    fallback_depth_range_m: (near, far) camera depths searched by an image that sees too
-        few sparse points to know its own.
-    view_selection: which images get a depth map of their own (the CPU backend; every
-        image stays a stereo source).
-    neighbours: how the stereo sources of a reference image are scored.
-    stereo: the CPU stereo's matching.
-    fusion: COLMAP's stereo fusion.
-    meshing: the screened Poisson mesh.
-    colour_correction: also write `fused_corrected.ply` (attenuation removed) and mesh it.
-    colour: the water's attenuation and veiling light (estimated when not given).
-    make_mesh: run Poisson meshing.
-    mesh_min_images: fused points seen in fewer images than this are left out of the
-        mesh (`fused_supported.ply`: with fusion's min_num_pixels 1, single-image depths
-        complete the cloud, but scattered ones make Poisson grow surface nothing
-        supports).
-    """
-
-    max_image_size_px: int = 960
-    backend: Literal["auto", "cpu", "patchmatch"] = "auto"
-    image_dir: Path | None = None
-    fallback_depth_range_m: tuple[float, float] = (0.3, 20.0)
-    view_selection: ViewSelectionOptions = field(default_factory=ViewSelectionOptions)
-    neighbours: NeighbourOptions = field(default_factory=NeighbourOptions)
-    stereo: CpuStereoOptions = field(default_factory=CpuStereoOptions)
-    fusion: FusionOptions = field(default_factory=FusionOptions)
-    meshing: MeshingOptions = field(default_factory=MeshingOptions)
-    colour_correction: bool = False
-    colour: ColourOptions = field(default_factory=ColourOptions)
-    make_mesh: bool = True
-    mesh_min_images: int = 2
 
 
 # ----------------------------------------------------------------- inputs

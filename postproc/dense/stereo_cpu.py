@@ -19,44 +19,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from postproc.dense.options import CpuStereoOptions as CpuStereoOptions
+
 F32 = npt.NDArray[np.float32]
 FloatArray = npt.NDArray[np.float64]
 Image = npt.NDArray[np.uint8]
-
-
-@dataclass(kw_only=True)
-class CpuStereoOptions:
-    """Matching parameters.
-
-    block_size_px: SGBM window (odd); p1, p2: SGBM smoothness penalties per channel and
-    pixel of window (scaled by block area); uniqueness_pct: SGBM uniqueness margin;
-    lr_max_diff_px: left-right check tolerance (SGBM disp12MaxDiff); max_disparities:
-    cap on the disparity search width (px); min_consistent: pairs that must agree on a
-    pixel's depth; consistency_rel: their agreement as a fraction of the depth;
-    max_rect_scale: cap on the rectified image size relative to the reference image;
-    normal_step_px: pixel spacing of the finite differences behind the normals.
-
-    Defaults measured on the simulated survey (640x360, true poses; pixel coverage of
-    depths 5-6 m / 6-8 m against the true depth): 7 px blocks and a strong P2 keep the
-    low-contrast far water-hazed surfaces matched (0.37 -> 0.63, 0.13 -> 0.33 with
-    min_consistent 1); min_consistent 1 keeps a pixel that one pair matched through its
-    left-right check when no other pair saw it (far and image-border pixels), since
-    stereo fusion checks every depth against the other images again (its
-    min_num_pixels).
-    """
-
-    block_size_px: int = 7
-    p1: float = 8.0
-    p2: float = 96.0
-    uniqueness_pct: int = 10
-    lr_max_diff_px: int = 1
-    speckle_window_px: int = 100
-    speckle_range: int = 2
-    max_disparities: int = 256
-    min_consistent: int = 1
-    consistency_rel: float = 0.02
-    max_rect_scale: float = 2.0
-    normal_step_px: int = 2
 
 
 @dataclass

@@ -9,72 +9,14 @@ the image, where rectification degenerates).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import numpy.typing as npt
 
+from postproc.dense.options import NeighbourOptions as NeighbourOptions
+from postproc.dense.options import ViewSelectionOptions as ViewSelectionOptions
+
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
-
-
-@dataclass(kw_only=True)
-class NeighbourOptions:
-    """How neighbours are scored.
-
-    max_neighbours: partners kept per image; min_angle_deg / max_angle_deg: triangulation
-    angle at the reference's scene depth outside which a pair is rejected;
-    best_angle_deg: the angle scored highest; min_overlap: smallest fraction of the
-    reference's view (sampled on a grid at its scene depth) that must land in the partner;
-    min_sideways: smallest sine of the angle between the baseline and the reference's
-    optical axis (0: any motion, 1: purely sideways); far_neighbours: extra partners,
-    beyond `max_neighbours`, scored at the reference's far scene depth (a long oblique
-    wall or the seafloor 5-8 m away needs a longer baseline than its median depth asks
-    for: the triangulation angle falls with depth), when far depths are given.
-
-    3 + 1 partners (instead of 4 + 2): stereo time per reference x 0.71 (same process,
-    960x540), accuracy / completeness at 5 cm 97.5 / 71.5 % instead of 97.3 / 72.1 %
-    (`bench_dense.py`, 960x540, reference views of the default selection).
-    """
-
-    max_neighbours: int = 3
-    far_neighbours: int = 1
-    min_angle_deg: float = 2.0
-    max_angle_deg: float = 30.0
-    best_angle_deg: float = 10.0
-    min_overlap: float = 0.3
-    min_sideways: float = 0.5
-
-
-@dataclass(kw_only=True)
-class ViewSelectionOptions:
-    """Which keyframes get a depth map of their own (reference views).
-
-    SLAM keeps a keyframe every few tenths of a second; a depth map for each of them
-    computes the same surface many times over (and twice where the diver swims back).
-    A keyframe becomes a reference unless a reference already chosen lies within
-    `min_baseline_rel` times its scene depth (median sparse-point depth, m) AND looks in
-    a direction within `min_rotation_deg` of its own (angle between optical axes, so a
-    roll about the axis does not count): dense work then grows with the surveyed
-    surface, not with the time spent over it. Every keyframe remains a stereo source.
-
-    The defaults space references about half a footprint apart (0.15 of the scene depth,
-    10 degrees), so a surface lies in two or more reference depth maps: the mesh keeps
-    only points that two maps agree on (`mesh_min_images`). At 0.3 / 20 degrees most
-    surface was in one map only, and a simulated 10-minute dive (1227 keyframes) got 39
-    references and a mesh covering 16 % of the filmed surface at 5 cm; at 0.15 / 10
-    degrees, 130 references and 55 %, for 1.7x the dense time.
-
-    enabled: False makes every keyframe a reference.
-    min_baseline_rel: distance to the nearest reference, as a fraction of the scene
-        depth, beyond which a keyframe sees enough new surface (0.15 at 2.5 m: 0.38 m).
-    min_rotation_deg: turn beyond which a keyframe sees another part of the scene or the
-        same surface from another side.
-    """
-
-    enabled: bool = True
-    min_baseline_rel: float = 0.15
-    min_rotation_deg: float = 10.0
 
 
 def select_reference_views(

@@ -137,7 +137,8 @@ class Flag:
     flag: the flag (`--max-offset`); None: `--` and the field name in kebab-case.
     negate: a boolean field that defaults to true, turned off by this flag (`--no-fuse`).
     zero_is_none: the value 0 means None (`--clock-window 0` turns the prior off).
-    metavar: shown in the help instead of the field's name.
+    metavar: shown in the help instead of the field's name (one name per value for a
+        fixed-length tuple field, `("R", "G", "B")`, which takes that many values).
     also: other fields (same type and default) that take the same value (`--threads`
         sets the threads of every step).
     off_flag: a field that is true, false or a third value by default (None, "auto"):
@@ -148,7 +149,7 @@ class Flag:
     flag: str | None = None
     negate: bool = False
     zero_is_none: bool = False
-    metavar: str | None = None
+    metavar: str | tuple[str, ...] | None = None
     also: tuple[str, ...] = ()
     off_flag: str | None = None
 
@@ -175,6 +176,16 @@ def _resolve(cls: type, dotted: str) -> tuple[type, dataclasses.Field[Any], Any,
             continue
         return owner, fields[part], hint, _default(fields[part])
     raise KeyError(dotted)
+
+
+def _fixed_tuple(hint: Any) -> tuple[type, int] | None:
+    """(item type, length) of `tuple[T, T, ...]` with T int, float or str; else None."""
+    if typing.get_origin(hint) is not tuple:
+        return None
+    items = typing.get_args(hint)
+    if not items or Ellipsis in items or len(set(items)) != 1 or items[0] not in (int, float, str):
+        return None
+    return items[0], len(items)
 
 
 def add_flags(parser: argparse.ArgumentParser, cls: type, flags: list[Flag]) -> None:
@@ -225,6 +236,10 @@ def add_flags(parser: argparse.ArgumentParser, cls: type, flags: list[Flag]) -> 
             kwargs["type"] = lambda text, by_text=by_text: by_text.get(text, text)
         elif value_hint in (int, float, str, Path):
             kwargs["type"] = value_hint
+        elif (fixed := _fixed_tuple(value_hint)) is not None:
+            # A fixed-length tuple of one type (`tuple[float, float, float]`): that many
+            # values after the flag (`--attenuation 0.4 0.13 0.11`).
+            kwargs["type"], kwargs["nargs"] = fixed
         else:
             raise TypeError(f"{flag.field}: no command-line flag for type {hint!r}")
         if choices is None:
@@ -275,6 +290,8 @@ def options_from_args(cls: type, args: argparse.Namespace, flags: list[Flag]) ->
         value = getattr(args, flag.dest)
         if flag.zero_is_none and value == 0:
             value = None
+        if isinstance(value, list):  # a tuple field's values (nargs)
+            value = tuple(value)
         for name in (flag.field, *flag.also):
             values[name] = value
     try:

@@ -216,3 +216,29 @@ def test_the_slam_command_keeps_its_flags_and_defaults() -> None:
     assert parse("--max-speed", "2.5").max_speed_m_s == 2.5  # type: ignore[attr-defined]
     with pytest.raises(SystemExit):
         parse("--gyro-check", "maybe")
+
+
+def test_the_dense_command_keeps_its_flags_and_defaults() -> None:
+    from postproc.commands.dense import DENSE_FLAGS, _options_type, dense_options
+    from postproc.dense.options import ColourOptions, FusionOptions, MeshingOptions
+
+    options_type = _options_type()
+    parser = argparse.ArgumentParser()
+    add_flags(parser, options_type, DENSE_FLAGS)
+    assert dense_options(parser.parse_args([])) == options_type()
+    argv = ["--images", "imgs", "--max-image-size", "640", "--backend", "cpu",
+            "--octree-depth", "9", "--no-mesh", "--attenuation", "0.4", "0.13", "0.11",
+            "--backscatter", "0.1", "0.2", "0.3", "--threads", "2"]  # fmt: skip
+    assert dense_options(parser.parse_args(argv)) == options_type(
+        image_dir=Path("imgs"),
+        max_image_size_px=640,
+        backend="cpu",
+        make_mesh=False,
+        colour_correction=True,  # a known attenuation turns it on
+        colour=ColourOptions(attenuation_per_m=(0.4, 0.13, 0.11), backscatter=(0.1, 0.2, 0.3)),
+        fusion=FusionOptions(num_threads=2),
+        meshing=MeshingOptions(octree_depth=9, num_threads=2),
+    )
+    assert dense_options(parser.parse_args(["--colour-correction"])).colour_correction
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--attenuation", "0.4", "0.13"])

@@ -1,0 +1,220 @@
+"""The dense stage's options: view selection, neighbours, CPU stereo, fusion, meshing,
+colour correction, and `DenseOptions` that holds them.
+
+Light on purpose (no OpenCV, pycolmap or NumPy here): the command line builds its flags
+from these classes (postproc.pipeline.options) without importing the stage. Each class
+is re-exported by the module that uses it (`postproc.dense.fusion.FusionOptions`...).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+
+@dataclass(kw_only=True)
+class NeighbourOptions:
+    """How neighbours are scored.
+
+    max_neighbours: partners kept per image; min_angle_deg / max_angle_deg: triangulation
+    angle at the reference's scene depth outside which a pair is rejected;
+    best_angle_deg: the angle scored highest; min_overlap: smallest fraction of the
+    reference's view (sampled on a grid at its scene depth) that must land in the partner;
+    min_sideways: smallest sine of the angle between the baseline and the reference's
+    optical axis (0: any motion, 1: purely sideways); far_neighbours: extra partners,
+    beyond `max_neighbours`, scored at the reference's far scene depth (a long oblique
+    wall or the seafloor 5-8 m away needs a longer baseline than its median depth asks
+    for: the triangulation angle falls with depth), when far depths are given.
+
+    3 + 1 partners (instead of 4 + 2): stereo time per reference x 0.71 (same process,
+    960x540), accuracy / completeness at 5 cm 97.5 / 71.5 % instead of 97.3 / 72.1 %
+    (`bench_dense.py`, 960x540, reference views of the default selection).
+    """
+
+    max_neighbours: int = 3
+    far_neighbours: int = 1
+    min_angle_deg: float = 2.0
+    max_angle_deg: float = 30.0
+    best_angle_deg: float = 10.0
+    min_overlap: float = 0.3
+    min_sideways: float = 0.5
+
+
+@dataclass(kw_only=True)
+class ViewSelectionOptions:
+    """Which keyframes get a depth map of their own (reference views).
+
+    SLAM keeps a keyframe every few tenths of a second; a depth map for each of them
+    computes the same surface many times over (and twice where the diver swims back).
+    A keyframe becomes a reference unless a reference already chosen lies within
+    `min_baseline_rel` times its scene depth (median sparse-point depth, m) AND looks in
+    a direction within `min_rotation_deg` of its own (angle between optical axes, so a
+    roll about the axis does not count): dense work then grows with the surveyed
+    surface, not with the time spent over it. Every keyframe remains a stereo source.
+
+    The defaults space references about half a footprint apart (0.15 of the scene depth,
+    10 degrees), so a surface lies in two or more reference depth maps: the mesh keeps
+    only points that two maps agree on (`mesh_min_images`). At 0.3 / 20 degrees most
+    surface was in one map only, and a simulated 10-minute dive (1227 keyframes) got 39
+    references and a mesh covering 16 % of the filmed surface at 5 cm; at 0.15 / 10
+    degrees, 130 references and 55 %, for 1.7x the dense time.
+
+    enabled: False makes every keyframe a reference.
+    min_baseline_rel: distance to the nearest reference, as a fraction of the scene
+        depth, beyond which a keyframe sees enough new surface (0.15 at 2.5 m: 0.38 m).
+    min_rotation_deg: turn beyond which a keyframe sees another part of the scene or the
+        same surface from another side.
+    """
+
+    enabled: bool = True
+    min_baseline_rel: float = 0.15
+    min_rotation_deg: float = 10.0
+
+
+@dataclass(kw_only=True)
+class CpuStereoOptions:
+    """Matching parameters.
+
+    block_size_px: SGBM window (odd); p1, p2: SGBM smoothness penalties per channel and
+    pixel of window (scaled by block area); uniqueness_pct: SGBM uniqueness margin;
+    lr_max_diff_px: left-right check tolerance (SGBM disp12MaxDiff); max_disparities:
+    cap on the disparity search width (px); min_consistent: pairs that must agree on a
+    pixel's depth; consistency_rel: their agreement as a fraction of the depth;
+    max_rect_scale: cap on the rectified image size relative to the reference image;
+    normal_step_px: pixel spacing of the finite differences behind the normals.
+
+    Defaults measured on the simulated survey (640x360, true poses; pixel coverage of
+    depths 5-6 m / 6-8 m against the true depth): 7 px blocks and a strong P2 keep the
+    low-contrast far water-hazed surfaces matched (0.37 -> 0.63, 0.13 -> 0.33 with
+    min_consistent 1); min_consistent 1 keeps a pixel that one pair matched through its
+    left-right check when no other pair saw it (far and image-border pixels), since
+    stereo fusion checks every depth against the other images again (its
+    min_num_pixels).
+    """
+
+    block_size_px: int = 7
+    p1: float = 8.0
+    p2: float = 96.0
+    uniqueness_pct: int = 10
+    lr_max_diff_px: int = 1
+    speckle_window_px: int = 100
+    speckle_range: int = 2
+    max_disparities: int = 256
+    min_consistent: int = 1
+    consistency_rel: float = 0.02
+    max_rect_scale: float = 2.0
+    normal_step_px: int = 2
+
+
+@dataclass(kw_only=True)
+class FusionOptions:
+    """COLMAP StereoFusionOptions we set (the rest keep COLMAP's defaults).
+
+    min_num_pixels: images that must agree on a point.
+    max_reproj_error_px: reprojection agreement.
+    max_depth_error_rel: depth agreement as a fraction of the depth.
+    max_normal_error_deg: normal agreement (our CPU normals come from finite differences of
+        the depth, noisier than PatchMatch's, so the default is looser than COLMAP's 10).
+    check_num_images: overlapping images checked per reference image.
+    input_type: "geometric" (filtered maps) or "photometric".
+    num_threads: worker threads (-1: all cores).
+
+    min_num_pixels 2 and max_depth_error_rel 0.02 (looser than COLMAP's 5 and 0.01) were
+    measured on the simulated survey (640x360, true poses): completeness at 5 cm 58.7 ->
+    67.6 %, accuracy 99.9 -> 99.3 %. Far surfaces (5-8 m through hazy water) are matched
+    by few images and with depth errors near 1-2 %: the stricter rules dropped them.
+    min_num_pixels 1 since depth maps exist for reference views only (about a third of
+    the keyframes, `ViewSelectionOptions`): each far surface is then in fewer depth maps
+    (`bench_dense.py`, 960x540, 19 of 56 keyframes: accuracy / completeness at 5 cm
+    99.9 / 48.9 % with 2, 97.3 / 72.1 % with 1). Every depth kept already passed the
+    stereo's left-right check.
+    """
+
+    min_num_pixels: int = 1
+    max_reproj_error_px: float = 2.0
+    max_depth_error_rel: float = 0.02
+    max_normal_error_deg: float = 25.0
+    check_num_images: int = 50
+    input_type: Literal["geometric", "photometric"] = "geometric"
+    num_threads: int = -1
+
+
+@dataclass(kw_only=True)
+class MeshingOptions:
+    """Screened Poisson meshing of the fused points.
+
+    octree_depth: Poisson octree depth (None: chosen from the scene).
+    min_depth / max_depth: bounds of the octree depth chosen from the scene.
+    point_weight: screening weight (COLMAP's default 1).
+    poisson_trim: COLMAP's density trim (0: off, we trim by distance instead).
+    trim_distance_spacings: drop vertices farther than this many point spacings (or octree
+        cells, when coarser) from the fused points (0: keep everything).
+    num_threads: worker threads (-1: all cores).
+    """
+
+    octree_depth: int | None = None
+    min_depth: int = 6
+    max_depth: int = 10
+    point_weight: float = 1.0
+    poisson_trim: float = 0.0
+    trim_distance_spacings: float = 2.5
+    num_threads: int = -1
+
+
+@dataclass(kw_only=True)
+class ColourOptions:
+    """The water's colour model (see the module postproc.dense.colour).
+
+    attenuation_per_m: known attenuation beta per R, G, B (None: estimated from the points).
+    backscatter: known veiling light B per R, G, B, linear 0..1 (None: estimated).
+    gamma: display gamma of the images.
+    white_balance: divide out the per-channel illumination (grey world).
+    min_range_span_m: smallest spread (5-95 %) of point ranges that makes the estimate
+        meaningful.
+    """
+
+    attenuation_per_m: tuple[float, float, float] | None = None
+    backscatter: tuple[float, float, float] | None = None
+    gamma: float = 2.2
+    white_balance: bool = True
+    min_range_span_m: float = 0.5
+
+
+@dataclass(kw_only=True)
+class DenseOptions:
+    """What the dense stage does.
+
+    max_image_size_px: longest side of the undistorted images (and so of the depth maps).
+    backend: "auto" (PatchMatch when pycolmap has CUDA, else CPU), "cpu" or "patchmatch".
+    image_dir: the images the model names (None: look beside the model).
+    fallback_depth_range_m: (near, far) camera depths searched by an image that sees too
+        few sparse points to know its own.
+    view_selection: which images get a depth map of their own (the CPU backend; every
+        image stays a stereo source).
+    neighbours: how the stereo sources of a reference image are scored.
+    stereo: the CPU stereo's matching.
+    fusion: COLMAP's stereo fusion.
+    meshing: the screened Poisson mesh.
+    colour_correction: also write `fused_corrected.ply` (attenuation removed) and mesh it.
+    colour: the water's attenuation and veiling light (estimated when not given).
+    make_mesh: run Poisson meshing.
+    mesh_min_images: fused points seen in fewer images than this are left out of the
+        mesh (`fused_supported.ply`: with fusion's min_num_pixels 1, single-image depths
+        complete the cloud, but scattered ones make Poisson grow surface nothing
+        supports).
+    """
+
+    max_image_size_px: int = 960
+    backend: Literal["auto", "cpu", "patchmatch"] = "auto"
+    image_dir: Path | None = None
+    fallback_depth_range_m: tuple[float, float] = (0.3, 20.0)
+    view_selection: ViewSelectionOptions = field(default_factory=ViewSelectionOptions)
+    neighbours: NeighbourOptions = field(default_factory=NeighbourOptions)
+    stereo: CpuStereoOptions = field(default_factory=CpuStereoOptions)
+    fusion: FusionOptions = field(default_factory=FusionOptions)
+    meshing: MeshingOptions = field(default_factory=MeshingOptions)
+    colour_correction: bool = False
+    colour: ColourOptions = field(default_factory=ColourOptions)
+    make_mesh: bool = True
+    mesh_min_images: int = 2
