@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from postproc.calibrate.options import CameraImuOptions as CameraImuOptions
 from shared.errors import StageError
 from shared.geometry import project_to_so3, so3_exp, so3_log
 
@@ -234,44 +235,6 @@ def correlate_offset(
 def kabsch_rotation(target: FloatArray, source: FloatArray) -> FloatArray:
     """The rotation R minimising sum |target_i - R source_i|^2 over (N,3) vectors."""
     return project_to_so3(target.T @ source)
-
-
-@dataclass(kw_only=True)
-class CameraImuOptions:
-    """Settings of the camera-IMU rotation and time-shift estimate.
-
-    max_timeshift_s: the coarse search covers shifts in [-max, +max] seconds.
-    correlation_step_s: grid step of the coarse cross-correlation (s).
-    estimate_gyro_bias: fit a constant gyro bias (rad/s) with the rotation and shift.
-    robust_scale_rad: Cauchy loss scale on the rotation residuals (rad); residuals much
-        larger than this (a bad pose, a wrong feature match) hardly pull the fit.
-    outlier_threshold_rad, outlier_mad_factor: after a fit, intervals whose residual
-        exceeds both this and `outlier_mad_factor` robust sigmas (1.4826 * median) of the
-        residuals are dropped and the fit repeated (up to `max_rounds` fits).
-    integration_substeps: midpoint steps per frame interval when integrating the gyro.
-    min_intervals: fewer usable frame pairs than this is an error.
-    min_axis_excitation: the smallest singular value of the camera's rates over the largest
-        must reach this, else the camera turned about one axis only (rotation unobservable).
-    min_correlation: the |rate| cross-correlation peak must reach this, else the camera's
-        rotations do not follow the gyro at all (the wrong IMU, tracking that failed) and
-        no result is given. Real footage with slow turns peaks low (0.2-0.3), so this is
-        a loose guard; `min_explained` is the real test.
-    min_explained: the fitted model must explain at least this fraction of the camera's
-        rotation power (1 - sum residual^2 / sum angle^2), else no result is given.
-    """
-
-    max_timeshift_s: float = 0.5
-    correlation_step_s: float = 0.002
-    estimate_gyro_bias: bool = True
-    robust_scale_rad: float = 0.005
-    outlier_threshold_rad: float = 0.003
-    outlier_mad_factor: float = 5.0
-    max_rounds: int = 4
-    integration_substeps: int = 8
-    min_intervals: int = 20
-    min_axis_excitation: float = 0.05
-    min_correlation: float = 0.2
-    min_explained: float = 0.7
 
 
 @dataclass(frozen=True)

@@ -22,30 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from postproc.calibrate.options import FrameSelectionOptions as FrameSelectionOptions
+
 FloatArray = npt.NDArray[np.float64]
-
-
-@dataclass(kw_only=True)
-class FrameSelectionOptions:
-    """How views are chosen.
-
-    max_frames: at most this many views go into the calibration.
-    min_corners: views with fewer grid corners are skipped.
-    min_relative_sharpness: views whose sharpness is below this fraction of the median
-        sharpness of all candidates are skipped (motion blur).
-    coverage_cells: (columns, rows) of the image grid used to measure coverage.
-    angle_bin_deg: viewing angles (tilt of the board about the camera's x and y axes)
-        are binned this coarsely.
-    angle_weight, sharpness_weight: weights of the angle and sharpness terms of the gain.
-    """
-
-    max_frames: int = 40
-    min_corners: int = 16
-    min_relative_sharpness: float = 0.35
-    coverage_cells: tuple[int, int] = (8, 6)
-    angle_bin_deg: float = 15.0
-    angle_weight: float = 6.0
-    sharpness_weight: float = 0.5
 
 
 @dataclass(frozen=True)

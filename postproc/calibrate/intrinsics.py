@@ -14,43 +14,22 @@ target, a rolling-shutter smear) are dropped and the fit repeated once.
 
 from __future__ import annotations
 
+import typing
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from postproc.calibrate.frame_selection import GridView
+from postproc.calibrate.options import CameraModelName as CameraModelName
+from postproc.calibrate.options import IntrinsicsOptions as IntrinsicsOptions
 from shared.calibration.cameras import CameraModel, PinholeEquidistant, PinholeRadtan
 from shared.errors import StageError
 
 FloatArray = npt.NDArray[np.float64]
 
 #: Camera models by their names on the command line.
-CAMERA_MODEL_NAMES = ("pinhole-radtan", "pinhole-equidistant")
-
-
-@dataclass(kw_only=True)
-class IntrinsicsOptions:
-    """What is estimated.
-
-    model: "pinhole-radtan" (OpenCV plumb-bob, k3 = 0) or "pinhole-equidistant" (fisheye).
-    fix_principal_point: keep (cx, cy) at the image centre ((w - 1) / 2, (h - 1) / 2).
-    fix_aspect_ratio: fx = fy.
-    zero_distortion: estimate no distortion (all coefficients 0); for few views.
-    initial_focal_px: starting focal length (pixels) for fixed-aspect fits; None: width.
-    outlier_view_factor, outlier_view_min_px: views above both thresholds (RMS, pixels)
-        are dropped after the first fit.
-    min_views: fewer usable views than this is an error.
-    """
-
-    model: str = "pinhole-radtan"
-    fix_principal_point: bool = False
-    fix_aspect_ratio: bool = False
-    zero_distortion: bool = False
-    initial_focal_px: float | None = None
-    outlier_view_factor: float = 3.0
-    outlier_view_min_px: float = 1.0
-    min_views: int = 3
+CAMERA_MODEL_NAMES: tuple[str, ...] = typing.get_args(CameraModelName)
 
 
 @dataclass(frozen=True)

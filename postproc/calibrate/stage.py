@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,28 +33,28 @@ import numpy as np
 import numpy.typing as npt
 
 from postproc.calibrate.camera_imu import (
-    CameraImuOptions,
     CameraImuResult,
     GyroSignal,
     RotationIntervals,
     estimate_camera_imu,
 )
 from postproc.calibrate.frame_selection import (
-    FrameSelectionOptions,
     GridView,
     coverage_fraction,
     select_frames,
     sharpness,
 )
 from postproc.calibrate.intrinsics import (
-    IntrinsicsOptions,
     calibrate_intrinsics,
     reprojection_errors_px,
 )
+from postproc.calibrate.options import CalibrateOptions as CalibrateOptions
+from postproc.calibrate.options import CameraCalibrationOptions as CameraCalibrationOptions
+from postproc.calibrate.options import ImuCalibrationOptions as ImuCalibrationOptions
+from postproc.calibrate.options import RigCalibrationOptions as RigCalibrationOptions
 from postproc.calibrate.sources import open_frames, read_gyro
-from postproc.calibrate.two_camera import RigSyncOptions, estimate_rig_sync
+from postproc.calibrate.two_camera import estimate_rig_sync
 from postproc.calibrate.visual_rotation import (
-    FeatureRotationOptions,
     rotation_from_features,
     target_from_cam,
 )
@@ -116,26 +115,6 @@ def _matrix(m: FloatArray) -> list[list[float]]:
 
 
 # ------------------------------------------------------------------------------ intrinsics
-
-
-@dataclass(kw_only=True)
-class CameraCalibrationOptions:
-    """The camera (intrinsics) calibration.
-
-    topic: the camera topic of a session (None: /cam0/video, or /cam0/image stills).
-    max_candidate_rate_hz: frames examined for the grid per second of recording (a
-        30 fps sweep holds mostly near-duplicates; detection is the slow part).
-    min_tags: frames with fewer tags of the target are not used.
-    coverage_cells: (columns, rows) of the coverage measure and plot.
-    """
-
-    topic: str | None = None
-    max_candidate_rate_hz: float = 4.0
-    min_tags: int = 4
-    coverage_cells: tuple[int, int] = (8, 6)
-    selection: FrameSelectionOptions = field(default_factory=FrameSelectionOptions)
-    intrinsics: IntrinsicsOptions = field(default_factory=IntrinsicsOptions)
-    detection: DetectionOptions = field(default_factory=DetectionOptions)
 
 
 def collect_views(
@@ -278,35 +257,6 @@ def _camera(
 
 
 # ------------------------------------------------------------------------------ camera-IMU
-
-
-@dataclass(kw_only=True)
-class ImuCalibrationOptions:
-    """The camera-IMU rotation and time shift.
-
-    camera_index: which camera of the input camchain (0 = cam0).
-    topic: the camera topic of a session (None: the camchain's topic when it names a
-        session topic, else /cam0/video).
-    imu_topic: the IMU topic of a session.
-    use_features: where the grid is not seen in both frames of a pair, use tracked
-        features (essential matrix) for the rotation; else skip the pair.
-    frame_stride: use every Nth frame (pairs N frames apart): faster on long, high-rate
-        videos; the rotation between frames grows, which features tolerate up to a point.
-    max_frame_gap_s: pairs of used frames further apart than this are not used (dropped
-        frames); scaled by `frame_stride`.
-    min_tags: grid detections with fewer tags are not used for a pose.
-    """
-
-    camera_index: int = 0
-    topic: str | None = None
-    imu_topic: str = "/imu0"
-    use_features: bool = True
-    frame_stride: int = 1
-    max_frame_gap_s: float = 0.1
-    min_tags: int = 4
-    detection: DetectionOptions = field(default_factory=DetectionOptions)
-    features: FeatureRotationOptions = field(default_factory=FeatureRotationOptions)
-    estimate: CameraImuOptions = field(default_factory=CameraImuOptions)
 
 
 def camera_rotations(
@@ -492,19 +442,6 @@ def _imu(
 # ------------------------------------------------------------------------------ two rigs
 
 
-@dataclass(kw_only=True)
-class RigCalibrationOptions:
-    """Two rigs (camera + own IMU each) on one mount.
-
-    imu_topic0, imu_topic1: the IMU topic in each recording (the same session may hold
-    both, e.g. /imu0 and /imu1).
-    """
-
-    imu_topic0: str = "/imu0"
-    imu_topic1: str = "/imu0"
-    sync: RigSyncOptions = field(default_factory=RigSyncOptions)
-
-
 def run_rig(
     options: RigCalibrationOptions,
     recording0: Path | str,
@@ -582,18 +519,3 @@ def _rig(
 
 
 # ------------------------------------------------------------------------------ pipeline
-
-
-@dataclass(kw_only=True)
-class CalibrateOptions:
-    """Options of the pipeline's calibrate stage (`calibration.recording` in a project).
-
-    camera: intrinsics from the AprilGrid views (CameraCalibrationOptions).
-    imu: camera-IMU rotation and time shift (ImuCalibrationOptions).
-    estimate_imu: also estimate the camera-IMU rotation and time shift (else the
-        camera-only camchain is used).
-    """
-
-    camera: CameraCalibrationOptions = field(default_factory=CameraCalibrationOptions)
-    imu: ImuCalibrationOptions = field(default_factory=ImuCalibrationOptions)
-    estimate_imu: bool = True

@@ -22,40 +22,11 @@ import numpy as np
 import numpy.typing as npt
 
 from postproc.calibrate.camera_imu import GyroSignal, correlate_offset, kabsch_rotation
+from postproc.calibrate.options import RigSyncOptions as RigSyncOptions
 from shared.errors import StageError
 from shared.geometry import so3_exp
 
 FloatArray = npt.NDArray[np.float64]
-
-
-@dataclass(kw_only=True)
-class RigSyncOptions:
-    """Settings of the two-rig clock offset and rotation.
-
-    max_offset_s: the search covers offsets within this of `prior_offset_s` (s).
-    prior_offset_s: the expected clock-1-minus-clock-0 offset (s), e.g. from file times.
-    coarse_step_s: grid step of the first, wide cross-correlation (s).
-    fine_step_s: grid step of the second, narrow one around the first peak (s).
-    smoothing_s: both gyros are averaged over windows this long before correlating (s).
-    robust_scale_rad_s: Huber scale of the rate residuals in the joint fit (rad/s).
-    fit_rate_hz: rate at which clock-0 times are sampled for the joint fit (Hz).
-    min_overlap_s: the recordings must share at least this much motion (s).
-    min_axis_excitation: smallest over largest singular value of the rates; below it
-        the rigs turned about one axis only and R_10 is not observable.
-    min_correlation: the |rate| cross-correlation peak must reach this, else the two
-        gyros did not record the same motion (not one mount, no overlap in the range).
-    """
-
-    max_offset_s: float = 30.0
-    prior_offset_s: float = 0.0
-    coarse_step_s: float = 0.02
-    fine_step_s: float = 0.002
-    smoothing_s: float = 0.02
-    robust_scale_rad_s: float = 0.05
-    fit_rate_hz: float = 100.0
-    min_overlap_s: float = 5.0
-    min_axis_excitation: float = 0.05
-    min_correlation: float = 0.5
 
 
 @dataclass(frozen=True)

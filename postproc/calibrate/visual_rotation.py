@@ -15,11 +15,10 @@ normalised image coordinates, so radtan and equidistant lenses are handled alike
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import numpy.typing as npt
 
+from postproc.calibrate.options import FeatureRotationOptions as FeatureRotationOptions
 from shared.calibration.cameras import CameraModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -60,27 +59,6 @@ def target_from_cam(
         return None
     pose: FloatArray = np.linalg.inv(cam_from_target)
     return pose
-
-
-@dataclass(kw_only=True)
-class FeatureRotationOptions:
-    """KLT tracking and essential-matrix settings.
-
-    max_features: corners tracked per frame pair; min_distance_px: their spacing.
-    min_inliers: fewer RANSAC inliers than this gives no rotation.
-    ransac_threshold_px: inlier threshold, pixels (converted with the focal length).
-    homography_inlier_ratio: a homography with at least this fraction of the essential
-        matrix's inliers marks a flat scene: its decomposition gives the rotation.
-    pure_rotation_px: when the homography taken as a pure rotation explains the tracks to
-        this median error (pixels), the camera is taken as only turning (no parallax).
-    """
-
-    max_features: int = 400
-    min_distance_px: int = 8
-    min_inliers: int = 30
-    ransac_threshold_px: float = 1.0
-    homography_inlier_ratio: float = 0.9
-    pure_rotation_px: float = 0.3
 
 
 def rotation_from_features(

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from postproc.pipeline.options import Flag, add_flags_lazily, options_from_args
+
 EXAMPLE = """\
 example:
   wreckmap-post calibrate camera sessions/calib1 --target aprilgrid.yaml --out calib/
@@ -20,6 +22,36 @@ timeshift_cam_imu; translation kept from --calib), camera_imu.json, camera_imu.p
 rig: two rigs' IMU streams -> camchain-rig.yaml (both cameras on rig 0's IMU frame
 and clock) and rig.json.
 """
+
+
+# The flags of each calibration's options (names kept from the first command lines):
+# camera's --rate is max_candidate_rate_hz, --no-distortion sets intrinsics.zero_distortion;
+# imu's --camera is camera_index, --no-features turns use_features off, --stride is
+# frame_stride; rig's offsets are those of its sync estimate.
+CAMERA_FLAGS = [
+    Flag(field="intrinsics.model"),
+    Flag(field="topic"),
+    Flag(field="selection.max_frames", metavar="N"),
+    Flag(field="max_candidate_rate_hz", flag="--rate", metavar="HZ"),
+    Flag(field="intrinsics.fix_principal_point"),
+    Flag(field="intrinsics.fix_aspect_ratio"),
+    Flag(field="intrinsics.zero_distortion", flag="--no-distortion"),
+    Flag(field="intrinsics.min_views", metavar="N"),
+]
+IMU_FLAGS = [
+    Flag(field="camera_index", flag="--camera", metavar="INDEX"),
+    Flag(field="topic"),
+    Flag(field="imu_topic"),
+    Flag(field="estimate.max_timeshift_s", flag="--max-timeshift", metavar="SECONDS"),
+    Flag(field="use_features", flag="--no-features", negate=True),
+    Flag(field="frame_stride", flag="--stride", metavar="N"),
+]
+RIG_FLAGS = [
+    Flag(field="imu_topic0"),
+    Flag(field="imu_topic1"),
+    Flag(field="sync.max_offset_s", flag="--max-offset", metavar="SECONDS"),
+    Flag(field="sync.prior_offset_s", flag="--prior-offset", metavar="SECONDS"),
+]
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -46,31 +78,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     camera.add_argument("--target", required=True, type=Path, help="Kalibr AprilGrid YAML")
     camera.add_argument("--out", required=True, type=Path, help="output folder")
-    camera.add_argument(
-        "--model",
-        choices=("pinhole-radtan", "pinhole-equidistant"),
-        default="pinhole-radtan",
-        help="camera model (default: pinhole-radtan)",
-    )
-    camera.add_argument("--topic", help="camera topic of a session (default: /cam0/video)")
-    camera.add_argument(
-        "--max-frames", type=int, default=40, help="views used in the fit (default: 40)"
-    )
-    camera.add_argument(
-        "--rate",
-        type=float,
-        default=4.0,
-        metavar="HZ",
-        help="frames examined per second of recording (default: 4; 0: every frame)",
-    )
-    camera.add_argument(
-        "--fix-principal-point", action="store_true", help="keep cx, cy at the image centre"
-    )
-    camera.add_argument("--fix-aspect-ratio", action="store_true", help="fx = fy")
-    camera.add_argument("--no-distortion", action="store_true", help="fit no distortion")
-    camera.add_argument(
-        "--min-views", type=int, default=3, help="fewest views accepted (default: 3)"
-    )
+    add_flags_lazily(camera, _camera_options_type, CAMERA_FLAGS)
     camera.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     camera.set_defaults(handler=_camera)
 
@@ -88,22 +96,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     imu.add_argument(
         "--target", type=Path, help="AprilGrid YAML when the grid is filmed (else features)"
     )
-    imu.add_argument("--camera", type=int, default=0, help="camera index in --calib (default 0)")
-    imu.add_argument("--topic", help="camera topic of a session (default: /cam0/video)")
-    imu.add_argument("--imu-topic", default="/imu0", help="IMU topic (default: /imu0)")
-    imu.add_argument(
-        "--max-timeshift",
-        type=float,
-        default=0.5,
-        metavar="SECONDS",
-        help="largest |time shift| searched (default: 0.5)",
-    )
-    imu.add_argument(
-        "--no-features", action="store_true", help="use grid poses only, no feature tracks"
-    )
-    imu.add_argument(
-        "--stride", type=int, default=1, metavar="N", help="use every Nth frame (default: 1)"
-    )
+    add_flags_lazily(imu, _imu_options_type, IMU_FLAGS)
     imu.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     imu.set_defaults(handler=_imu)
 
@@ -120,60 +113,42 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     rig.add_argument("--calib0", required=True, type=Path, help="rig 0's camchain")
     rig.add_argument("--calib1", required=True, type=Path, help="rig 1's camchain")
     rig.add_argument("--out", required=True, type=Path, help="output folder")
-    rig.add_argument("--imu-topic0", default="/imu0", help="rig 0's IMU topic (default /imu0)")
-    rig.add_argument("--imu-topic1", default="/imu0", help="rig 1's IMU topic (default /imu0)")
-    rig.add_argument(
-        "--max-offset",
-        type=float,
-        default=30.0,
-        metavar="SECONDS",
-        help="largest |clock offset - prior| searched (default: 30)",
-    )
-    rig.add_argument(
-        "--prior-offset",
-        type=float,
-        default=0.0,
-        metavar="SECONDS",
-        help="expected clock offset, rig 1 minus rig 0 (default: 0)",
-    )
+    add_flags_lazily(rig, _rig_options_type, RIG_FLAGS)
     rig.add_argument("--overwrite", action="store_true", help="redo and replace outputs")
     rig.set_defaults(handler=_rig)
 
 
-def _camera(args: argparse.Namespace) -> int:
-    from postproc.calibrate.frame_selection import FrameSelectionOptions
-    from postproc.calibrate.intrinsics import IntrinsicsOptions
-    from postproc.calibrate.stage import CameraCalibrationOptions, run_camera
+def _camera_options_type() -> type:
+    from postproc.calibrate.options import CameraCalibrationOptions
 
-    options = CameraCalibrationOptions(
-        topic=args.topic,
-        max_candidate_rate_hz=args.rate,
-        selection=FrameSelectionOptions(max_frames=args.max_frames),
-        intrinsics=IntrinsicsOptions(
-            model=args.model,
-            fix_principal_point=args.fix_principal_point,
-            fix_aspect_ratio=args.fix_aspect_ratio,
-            zero_distortion=args.no_distortion,
-            min_views=args.min_views,
-        ),
-    )
+    return CameraCalibrationOptions
+
+
+def _imu_options_type() -> type:
+    from postproc.calibrate.options import ImuCalibrationOptions
+
+    return ImuCalibrationOptions
+
+
+def _rig_options_type() -> type:
+    from postproc.calibrate.options import RigCalibrationOptions
+
+    return RigCalibrationOptions
+
+
+def _camera(args: argparse.Namespace) -> int:
+    from postproc.calibrate.stage import run_camera
+
+    options = options_from_args(_camera_options_type(), args, CAMERA_FLAGS)
     result = run_camera(options, args.source, args.target, args.out, overwrite=args.overwrite)
     print(result)
     return 0
 
 
 def _imu(args: argparse.Namespace) -> int:
-    from postproc.calibrate.camera_imu import CameraImuOptions
-    from postproc.calibrate.stage import ImuCalibrationOptions, run_imu
+    from postproc.calibrate.stage import run_imu
 
-    options = ImuCalibrationOptions(
-        camera_index=args.camera,
-        topic=args.topic,
-        imu_topic=args.imu_topic,
-        use_features=not args.no_features,
-        frame_stride=args.stride,
-        estimate=CameraImuOptions(max_timeshift_s=args.max_timeshift),
-    )
+    options = options_from_args(_imu_options_type(), args, IMU_FLAGS)
     result = run_imu(
         options, args.recording, args.calib, args.target, args.out, overwrite=args.overwrite
     )
@@ -182,14 +157,9 @@ def _imu(args: argparse.Namespace) -> int:
 
 
 def _rig(args: argparse.Namespace) -> int:
-    from postproc.calibrate.stage import RigCalibrationOptions, run_rig
-    from postproc.calibrate.two_camera import RigSyncOptions
+    from postproc.calibrate.stage import run_rig
 
-    options = RigCalibrationOptions(
-        imu_topic0=args.imu_topic0,
-        imu_topic1=args.imu_topic1,
-        sync=RigSyncOptions(max_offset_s=args.max_offset, prior_offset_s=args.prior_offset),
-    )
+    options = options_from_args(_rig_options_type(), args, RIG_FLAGS)
     result = run_rig(
         options,
         args.recording0,

@@ -242,3 +242,61 @@ def test_the_dense_command_keeps_its_flags_and_defaults() -> None:
     assert dense_options(parser.parse_args(["--colour-correction"])).colour_correction
     with pytest.raises(SystemExit):
         parser.parse_args(["--attenuation", "0.4", "0.13"])
+
+
+def test_the_calibrate_commands_keep_their_flags_and_defaults() -> None:
+    from postproc.calibrate.options import (
+        CameraCalibrationOptions,
+        CameraImuOptions,
+        FrameSelectionOptions,
+        ImuCalibrationOptions,
+        IntrinsicsOptions,
+        RigCalibrationOptions,
+        RigSyncOptions,
+    )
+    from postproc.commands.calibrate import CAMERA_FLAGS, IMU_FLAGS, RIG_FLAGS
+
+    def parse(cls: type, flags: list[Flag], *argv: str) -> object:
+        parser = argparse.ArgumentParser()
+        add_flags(parser, cls, flags)
+        return options_from_args(cls, parser.parse_args(list(argv)), flags)
+
+    assert parse(CameraCalibrationOptions, CAMERA_FLAGS) == CameraCalibrationOptions()
+    camera = parse(CameraCalibrationOptions, CAMERA_FLAGS, "--model", "pinhole-equidistant",
+                   "--topic", "/cam1/video", "--max-frames", "20", "--rate", "0",
+                   "--fix-principal-point", "--fix-aspect-ratio", "--no-distortion",
+                   "--min-views", "5")  # fmt: skip
+    assert camera == CameraCalibrationOptions(
+        topic="/cam1/video",
+        max_candidate_rate_hz=0.0,
+        selection=FrameSelectionOptions(max_frames=20),
+        intrinsics=IntrinsicsOptions(
+            model="pinhole-equidistant",
+            fix_principal_point=True,
+            fix_aspect_ratio=True,
+            zero_distortion=True,
+            min_views=5,
+        ),
+    )
+    with pytest.raises(SystemExit):
+        parse(CameraCalibrationOptions, CAMERA_FLAGS, "--model", "omni")
+
+    assert parse(ImuCalibrationOptions, IMU_FLAGS) == ImuCalibrationOptions()
+    imu = parse(ImuCalibrationOptions, IMU_FLAGS, "--camera", "1", "--topic", "/cam1/video",
+                "--imu-topic", "/imu1", "--max-timeshift", "0.2", "--no-features",
+                "--stride", "3")  # fmt: skip
+    assert imu == ImuCalibrationOptions(
+        camera_index=1,
+        topic="/cam1/video",
+        imu_topic="/imu1",
+        use_features=False,
+        frame_stride=3,
+        estimate=CameraImuOptions(max_timeshift_s=0.2),
+    )
+
+    assert parse(RigCalibrationOptions, RIG_FLAGS) == RigCalibrationOptions()
+    rig = parse(RigCalibrationOptions, RIG_FLAGS, "--imu-topic0", "/imu0", "--imu-topic1",
+                "/imu1", "--max-offset", "10", "--prior-offset", "-2.5")  # fmt: skip
+    assert rig == RigCalibrationOptions(
+        imu_topic1="/imu1", sync=RigSyncOptions(max_offset_s=10.0, prior_offset_s=-2.5)
+    )
