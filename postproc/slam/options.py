@@ -192,7 +192,7 @@ class BackendOptions:
     landmark_prior_sigma_m: float = 10.0
     relinearize_threshold: float = 0.1
     extra_iterations: int = 0
-    factorization: str = "CHOLESKY"
+    factorization: Literal["QR", "CHOLESKY"] = "CHOLESKY"
     final_batch: bool = True
     window_keyframes: int = 150
     window_step_keyframes: int = 100
