@@ -431,21 +431,20 @@ def _leica(path: Path) -> Trajectory:
 
 
 def _drone_positions(video: Path, session: Path) -> Trajectory | None:
-    """A Karma drone's own position log (GPMF LNED, local NED, metres) on the session clock;
-    None when the clip holds none."""
+    """A Karma drone's own position log (GPMF LNED) on the session clock; None when absent."""
     import yaml
 
-    from field.gopro.telemetry import read_telemetry
+    from field.gopro.telemetry import local_positions
 
-    telemetry = read_telemetry(video, keys={"LNED"})
-    stream = next((v for k, v in telemetry.streams.items() if k.startswith("LNED")), None)
-    if stream is None or stream.samples < 3:
+    found = local_positions(video)
+    if found is None:
         return None
+    times_ns, ned_m = found
     document = yaml.safe_load((session / "session.yaml").read_text(encoding="utf-8"))
     start_ns = int(document["chapters"][0]["start_ns"])
-    poses = np.tile(np.eye(4), (stream.samples, 1, 1))
-    poses[:, :3, 3] = stream.values[:, 1:4]  # time, x, y, z, vx, vy, vz
-    return Trajectory(start_ns + stream.times_ns.astype(np.int64), poses)
+    poses = np.tile(np.eye(4), (len(times_ns), 1, 1))
+    poses[:, :3, 3] = ned_m
+    return Trajectory(start_ns + times_ns, poses)
 
 
 def _path_m(positions: FloatArray) -> float:

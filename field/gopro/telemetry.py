@@ -301,6 +301,21 @@ def read_telemetry(path: Path | str, *, keys: Collection[str] | None = None) -> 
     )
 
 
+def local_positions(path: Path | str) -> tuple[np.ndarray, np.ndarray] | None:
+    """A drone's own position log in a GoPro MP4: (media time ns (N,) int64, NED m (N, 3)).
+
+    The Karma writes its GPS/IMU filter's local position as the GPMF stream LNED
+    (time, x, y, z, vx, vy, vz; north-east-down, metres from the take-off point). It
+    is the nearest thing to truth a GoPro clip carries. None when the file has no
+    such stream (every camera that is not on a drone) or fewer than three samples.
+    """
+    telemetry = read_telemetry(path, keys={"LNED"})
+    stream = next((v for k, v in telemetry.streams.items() if k.startswith("LNED")), None)
+    if stream is None or stream.samples < 3:
+        return None
+    return stream.times_ns.astype(np.int64), np.asarray(stream.values[:, 1:4], dtype=np.float64)
+
+
 def global_settings(mp4: MP4File) -> dict[str, str]:
     """Text entries of the udta GPMF block (HERO8+, MAX): MINF model, CASN serial, FMWR
     firmware...; empty for older cameras. A corrupt block raises GPMFError."""

@@ -49,13 +49,14 @@ import numpy as np
 import pytest
 import yaml
 
+from field.gopro.telemetry import local_positions
 from postproc.slam.frontend import FrontendOptions
 from postproc.slam.gyro_check import GyroCheckOptions
 from postproc.slam.inputs import open_input
 from postproc.slam.stage import keyframe_speeds_m_s, probe_gyro
 from shared.archive import ArchiveReader, ArchiveWriter
 from shared.formats.tum import read_tum
-from shared.trajectory import Trajectory
+from shared.trajectory import Trajectory, ate
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -202,16 +203,23 @@ def test_karma_drone_clip(shared_data: Path, tmp_path: Path) -> None:
     length = float(np.linalg.norm(np.diff(position, axis=0), axis=1).sum())
     assert 35.0 < length < 110.0
     assert abs(float(position[-1, 2] - position[0, 2])) < 8.0
-    # Known limit, last so that every check above still counts: since the frames are
-    # stamped and cropped as recorded (shared.formats.recordings), the last five of 24
-    # keyframes slow from 4.4 to 3.6 m/s (max/min of the second half 1.39; before, with
-    # frames 33 ms late and 864 px wide, 5.1 to 4.6 m/s, 1.09). The telemetry holds
-    # 8.3 m/s: the monocular scale over a far scene drifts at the end of the clip.
-    if float(np.max(half)) >= 1.3 * float(np.min(half)):
-        pytest.xfail(
-            f"karma: speed not steady over the second half ({float(np.min(half)):.2f} to "
-            f"{float(np.max(half)):.2f} m/s)"
-        )
+    # The drone's own position log (GPMF LNED) is the one near-truth in the clip: after
+    # Sim(3) alignment our path must follow its shape (0.9 % of its 77 m when the
+    # frames were read 33 ms late; the speed along it is not steady at the end, the
+    # monocular scale over a 40 m+ scene drifts, so the check is on shape, not speed).
+    found = local_positions(shared_data / "gopro" / "karma.mp4")
+    assert found is not None
+    times_ns, ned_m = found
+    start_ns = int(document["chapters"][0]["start_ns"])
+    poses = np.tile(np.eye(4), (len(times_ns), 1, 1))
+    poses[:, :3, 3] = ned_m
+    drone = Trajectory(start_ns + times_ns, poses).slice_time(
+        int(trajectory.stamps_ns[0]), int(trajectory.stamps_ns[-1])
+    )
+    result = ate(trajectory.interpolate(drone.stamps_ns), drone, align="sim3")
+    assert result.rmse_m < 0.03 * drone.path_length_m(), (
+        f"karma: {result.rmse_m:.2f} m from the drone log over {drone.path_length_m():.1f} m"
+    )
 
 
 @pytest.mark.slow
