@@ -66,6 +66,7 @@ from shared.calibration.kalibr import (
     read_target_yaml,
     write_camchain,
 )
+from shared.clock import NS_PER_S
 from shared.errors import InputError, StageError
 from shared.folders import CalibrationFolder, rebuild_files, result_stamp
 from shared.fsutil import write_text_atomic
@@ -75,8 +76,6 @@ from shared.progress import progress
 log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
-
-NS_PER_S = 1_000_000_000
 
 
 # ------------------------------------------------------------------------------ detection

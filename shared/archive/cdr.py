@@ -38,12 +38,12 @@ from shared.archive.messages import (
     RecorderEvent,
     SessionInfo,
 )
+from shared.clock import NS_PER_S
 from shared.errors import InputError
 
 ENCAPSULATION_HEADER = b"\x00\x01\x00\x00"
 """CDR little-endian encapsulation (representation id 0x0001, options 0)."""
 
-_NS_PER_S = 1_000_000_000
 _INT32_MIN = -(2**31)
 _INT32_MAX = 2**31 - 1
 
@@ -134,7 +134,7 @@ def message_definition(ros_short_name: str) -> str:
 
 def split_stamp(stamp_ns: int) -> tuple[int, int]:
     """Nanoseconds since epoch -> (sec int32, nanosec in [0, 1e9)) as builtin_interfaces/Time."""
-    sec, nanosec = divmod(stamp_ns, _NS_PER_S)
+    sec, nanosec = divmod(stamp_ns, NS_PER_S)
     if not _INT32_MIN <= sec <= _INT32_MAX:
         raise InputError(
             f"stamp {stamp_ns} ns: outside the int32 seconds range of builtin_interfaces/Time"
@@ -194,7 +194,7 @@ class _Cursor:
         self._need(8)
         sec, nanosec = struct.unpack_from("<iI", self.data, self.pos)
         self.pos += 8
-        return int(sec) * _NS_PER_S + int(nanosec)
+        return int(sec) * NS_PER_S + int(nanosec)
 
     def string(self) -> str:
         length = self.uint32()
@@ -361,7 +361,7 @@ def decode_imu_batch(
         where = np.asarray(indices)
         sec = rows[:, 4:8].copy().view("<i4")[:, 0].astype(np.int64)
         nanosec = rows[:, 8:12].copy().view("<u4")[:, 0].astype(np.int64)
-        stamps[where] = sec * _NS_PER_S + nanosec
+        stamps[where] = sec * NS_PER_S + nanosec
         doubles = rows[:, offset:size].copy().view("<f8")
         gyro[where] = doubles[:, _IMU_GYRO]
         accel[where] = doubles[:, _IMU_ACCEL]

@@ -76,6 +76,7 @@ from typing import Literal
 
 import numpy as np
 
+from shared.clock import NS_PER_S
 from shared.errors import InputError
 from shared.formats.tum import parse_stamp_ns
 from shared.geometry import make_pose, matrix_from_quat_xyzw
@@ -88,7 +89,6 @@ StampReading = Literal["tum", "svin", "ns"]
 PoseFrame = Literal["body", "camera"]
 FORMATS: tuple[TrajectoryFormat, ...] = ("auto", "tum", "svin")
 
-_NS_PER_S = 1_000_000_000
 _TUM_COLUMNS = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
 _PLAIN_STAMP = re.compile(r"^(\d+)(?:\.(\d*))?$")
 _FIELD_SPLIT = re.compile(r"[,\s]+")
@@ -203,7 +203,7 @@ def parse_svin_stamp_ns(text: str) -> int:
     whole, frac = match.group(1), match.group(2) or "0"
     if len(frac) > 9:
         raise ValueError(f"timestamp {text!r} has more than 9 nanosecond digits")
-    stamp_ns = int(whole) * _NS_PER_S + int(frac)
+    stamp_ns = int(whole) * NS_PER_S + int(frac)
     if stamp_ns >= 2**63:
         raise ValueError(f"timestamp {text!r} beyond the int64 nanosecond range")
     return stamp_ns

@@ -19,14 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
+from shared.clock import NS_PER_S
 from shared.errors import InputError
 from shared.fsutil import write_text_atomic
 from shared.geometry import make_pose, matrix_from_quat_xyzw, quat_xyzw_from_matrix
 from shared.trajectory import Trajectory
 
 _FIELDS = "timestamp tx ty tz qx qy qz qw"
-_NS_PER_S = 1_000_000_000
-_MAX_STAMP_S = Decimal(2**63) / _NS_PER_S
+_MAX_STAMP_S = Decimal(2**63) / NS_PER_S
 
 
 def parse_stamp_ns(text: str) -> int:
@@ -42,7 +42,7 @@ def parse_stamp_ns(text: str) -> int:
     # (adjusted() is the decimal exponent, read without the context that abs() would apply.)
     if value.adjusted() > 12 or value.copy_abs() > _MAX_STAMP_S:
         raise ValueError(f"timestamp {text!r} beyond the int64 nanosecond range")
-    stamp_ns = int((value * _NS_PER_S).quantize(Decimal(1), rounding=ROUND_HALF_EVEN))
+    stamp_ns = int((value * NS_PER_S).quantize(Decimal(1), rounding=ROUND_HALF_EVEN))
     if not -(2**63) <= stamp_ns < 2**63:
         raise ValueError(f"timestamp {text!r} beyond the int64 nanosecond range")
     return stamp_ns
@@ -51,7 +51,7 @@ def parse_stamp_ns(text: str) -> int:
 def format_stamp_ns(stamp_ns: int) -> str:
     """Int ns to decimal seconds with exactly 9 decimals ("1700000000.000000001")."""
     sign = "-" if stamp_ns < 0 else ""
-    whole, frac = divmod(abs(int(stamp_ns)), _NS_PER_S)
+    whole, frac = divmod(abs(int(stamp_ns)), NS_PER_S)
     return f"{sign}{whole}.{frac:09d}"
 
 
