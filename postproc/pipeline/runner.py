@@ -42,6 +42,7 @@ from typing import Any
 from postproc.pipeline.project import Project, SessionSpec
 from postproc.pipeline.stages import STAGES, NotPlanned, RunFn, Stage, check_output
 from shared.errors import InputError, WreckmapError
+from shared.folders import jsonable
 from shared.fsutil import atomic_path, write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -303,9 +304,7 @@ def run_project(
                         "session": task.session,
                         "digest": digest,
                         "deps": {d: upstream[d] for d in (*task.deps, *task.soft_deps)},
-                        "options": jsonable(dataclasses.asdict(options))
-                        if dataclasses.is_dataclass(options)
-                        else jsonable(options),
+                        "options": jsonable(options),
                     },
                 )
                 say(f"  {task.key}: started ({backend.description})")
@@ -406,29 +405,12 @@ def task_digest(
     document = {
         "format": FORMAT_VERSION,
         "stage": task.stage,
-        "options": jsonable(dataclasses.asdict(options))
-        if dataclasses.is_dataclass(options)
-        else jsonable(options),
+        "options": jsonable(options),
         "raw": sorted(hashes.digest(p) for p in raw),
         "upstream": {d: upstream[d] for d in (*task.deps, *task.soft_deps)},
         "input_names": sorted(task.inputs),
     }
     return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
-
-
-def jsonable(value: Any) -> Any:
-    """Options as JSON: Paths as strings, tuples as lists, anything else by repr."""
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return jsonable(dataclasses.asdict(value))
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [jsonable(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
-    return repr(value)
 
 
 class ContentHashCache:
