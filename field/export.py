@@ -34,6 +34,7 @@ from shared.archive import ArchiveReader
 from shared.archive.video import SessionVideo, session_archives
 from shared.clock import NS_PER_S
 from shared.errors import InputError, OutputExistsError
+from shared.folders import SessionFolder
 from shared.fsutil import atomic_path
 from shared.progress import progress
 
@@ -89,13 +90,16 @@ def export_euroc(options: ExportOptions, session_dir: Path, out: Path, *, overwr
     from shared.calibration.kalibr import read_camchain, read_imu_yaml
     from shared.formats.euroc import EurocWriter
 
-    camchain = session_dir / "calib" / "camchain.yaml"
+    folder = SessionFolder(session_dir)
+    camchain = folder.camchain
     if not camchain.is_file():
-        raise InputError(f"{session_dir}: no calib/camchain.yaml (EuRoC needs the intrinsics)")
+        raise InputError(
+            f"{session_dir}: no {folder.relative(camchain)} (EuRoC needs the intrinsics)"
+        )
     calibration = read_camchain(camchain)[0]
     if options.scale != 1.0:
         calibration.camera = calibration.camera.scaled(options.scale)
-    imu_yaml = session_dir / "calib" / "imu.yaml"
+    imu_yaml = folder.imu_yaml
     noise = read_imu_yaml(imu_yaml) if imu_yaml.is_file() else None
     imu = _read_imu(session_dir, options.imu_topic)
     with (

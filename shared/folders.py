@@ -72,6 +72,10 @@ class HandoffFolder:
     def marker_path(self) -> Path:
         return self.path / self.marker
 
+    def relative(self, path: Path) -> str:
+        """`path` (one of this folder's) as the name relative to the folder, with `/`."""
+        return path.relative_to(self.path).as_posix()
+
     def is_complete(self) -> bool:
         """Whether the writer finished (the marker file exists)."""
         return self.marker_path.is_file()
@@ -110,7 +114,26 @@ class SessionFolder(HandoffFolder):
 
     @property
     def recording(self) -> Path:
+        """The single recording of an imported session."""
         return self.path / "recording.mcap"
+
+    def recording_part(self, index: int) -> Path:
+        """The recorder's `index`th file (it rotates them by size or time)."""
+        return self.path / f"recording_{index:03d}.mcap"
+
+    def recording_parts(self) -> list[Path]:
+        """The recorder's complete files, `recording_NNN.mcap`, in order."""
+        return sorted(self.path.glob("recording_*.mcap"))
+
+    @staticmethod
+    def is_recording_part(name: str) -> bool:
+        """Whether `name` is one of the recorder's files (complete or `.part`)."""
+        return name.startswith("recording_")
+
+    @property
+    def bag_metadata(self) -> Path:
+        """rosbag2's description of the MCAP files (the name is rosbag2's)."""
+        return self.path / "metadata.yaml"
 
     @property
     def calib(self) -> Path:
@@ -254,6 +277,12 @@ class SlamFolder(HandoffFolder):
     @property
     def depth(self) -> DepthFolder:
         return DepthFolder(self.path / "depth")
+
+    @property
+    def depth_beside(self) -> DepthFolder:
+        """A depth folder beside this one (`<dive>/slam`, `<dive>/depth`), where the SfM
+        stage also looks for one (the pipeline's is `depth`, inside)."""
+        return DepthFolder(self.path.parent / "depth")
 
     def read_stats(self) -> dict[str, Any]:
         return self.read_json(self.stats)

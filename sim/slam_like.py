@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from shared.calibration.kalibr import write_camchain
+from shared.folders import MergeFolder, SlamFolder
 from shared.formats.tum import write_tum
 from shared.geometry import invert_pose, make_pose, so3_exp
 from shared.trajectory import Trajectory
@@ -132,18 +133,19 @@ def write_slam_like_survey(
             jitter_deg=jitter_deg,
         )
         folder = out_dir / truth.name
-        (folder / "keyframes").mkdir(parents=True, exist_ok=True)
+        slam = SlamFolder(folder)
+        slam.keyframes.mkdir(parents=True, exist_ok=True)
         for stamp in stamps.tolist():
             frame = sim.render_frame(k, stamp)
             gray = cv2.cvtColor(frame.image_rgb, cv2.COLOR_RGB2GRAY)
-            cv2.imwrite(str(folder / "keyframes" / f"{stamp}.png"), gray)
+            cv2.imwrite(str(slam.keyframe_image(stamp)), gray)
         estimate_trajectory = Trajectory(stamps, estimate)
-        write_tum(folder / "keyframes.tum", estimate_trajectory)
-        write_camchain(folder / "calib" / "camchain.yaml", [sim.calibration])
+        write_tum(slam.keyframes_tum, estimate_trajectory)
+        write_camchain(slam.camchain, [sim.calibration])
         if write_stats:
             path = Trajectory(stamps, session_from_cam).path_length_m()
             stats = {"keyframes": len(stamps), "path_length_m": path, "drift_per_m": drift_per_m}
-            (folder / "stats.json").write_text(json.dumps(stats, indent=2) + "\n")
+            slam.stats.write_text(json.dumps(stats, indent=2) + "\n")
         result.append(
             SlamLikeSession(
                 folder=folder,
@@ -170,6 +172,7 @@ def write_merge_like(
     the others `"placed": false`. Returns `out_dir`.
     """
     rng = np.random.default_rng(seed)
+    merge = MergeFolder(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     entries: dict[str, object] = {}
     for session, is_placed in zip(sessions, placed, strict=True):
@@ -178,7 +181,7 @@ def write_merge_like(
             T[:3, 3] += rng.normal(size=3) * error_m
         if is_placed:
             write_tum(
-                out_dir / session.folder.name / "keyframes_merged.tum",
+                merge.merged_keyframes(session.folder.name),
                 session.estimate.transformed(T),
             )
         entries[session.folder.name] = {
@@ -187,5 +190,5 @@ def write_merge_like(
             "T_W_S": T.tolist() if is_placed else None,
             "covariance": (np.eye(6) * max(error_m, 0.01) ** 2).tolist() if is_placed else None,
         }
-    (out_dir / "transforms.json").write_text(json.dumps({"sessions": entries}, indent=2) + "\n")
+    merge.transforms.write_text(json.dumps({"sessions": entries}, indent=2) + "\n")
     return out_dir

@@ -26,6 +26,7 @@ from shared.calibration.cameras import PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, ImuNoise
 from shared.clock import NS_PER_S, ClockModel, ns_from_seconds
 from shared.errors import OutputExistsError
+from shared.folders import SessionFolder
 from shared.forkpool import fork_pool
 from shared.formats.diveprofile import DiveProfile
 from sim.dive import DiveComputerOptions, simulate_dive_profile
@@ -43,6 +44,9 @@ TRUTH_FORMAT = "wreckmap-sim-truth"
 # Version 2: the unit suffixes of the tree (gravity_w_m_s2, gyro_bias0_rad_s, accel_bias0_m_s2;
 # version 1 spelled them _mps2 and _radps).
 TRUTH_VERSION = 2
+# The survey's calib/ (camchain.yaml, imu.yaml) is laid out as a session's, so that the
+# pipeline hands it on as it would a field session's; truth.json names it relative to DIR.
+_SURVEY_CALIB = SessionFolder(".")
 # The ORIN a HERO9 writes for ACCL/GYRO (value order of the IMU chip axes).
 GOPRO_IMU_AXIS_ORDER = "ZXY"
 
@@ -439,7 +443,7 @@ class SurveySimulator:
                 "fps": opt.fps,
                 "cam_from_imu": _matrix(self.calibration.cam_from_imu),
                 "timeshift_cam_imu_s": opt.timeshift_cam_imu_s,
-                "camchain": "calib/camchain.yaml",
+                "camchain": _SURVEY_CALIB.relative(_SURVEY_CALIB.camchain),
             },
             "imu": {
                 "rate_hz": opt.imu_rate_hz,
@@ -447,7 +451,7 @@ class SurveySimulator:
                 "accelerometer_random_walk": noise.accelerometer_random_walk,
                 "gyroscope_noise_density": noise.gyroscope_noise_density,
                 "gyroscope_random_walk": noise.gyroscope_random_walk,
-                "yaml": "calib/imu.yaml",
+                "yaml": _SURVEY_CALIB.relative(_SURVEY_CALIB.imu_yaml),
             },
             "sessions": sessions,
         }
@@ -656,8 +660,9 @@ def run(options: SurveyOptions, out_dir: Path | str, *, overwrite: bool = False)
         write_ply(tmp / "truth_mesh.ply", scene_mesh(scene))
         for placement in scene.targets:
             write_target_yaml(tmp / "targets" / f"{placement.name}.yaml", placement.target)
-        write_camchain(tmp / "calib" / "camchain.yaml", [sim.calibration])
-        write_imu_yaml(tmp / "calib" / "imu.yaml", options.imu)
+        calib = SessionFolder(tmp)  # a session's calib/ layout (_SURVEY_CALIB)
+        write_camchain(calib.camchain, [sim.calibration])
+        write_imu_yaml(calib.imu_yaml, options.imu)
         bar = progress_bar(total=total, desc="sim survey", unit="frame")
         try:
             for k in range(len(sim.sessions)):

@@ -29,6 +29,7 @@ from shared.calibration.aprilgrid import (
 from shared.calibration.cameras import CameraModel, PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, write_camchain
 from shared.clock import ns_from_seconds
+from shared.folders import SlamFolder
 from shared.formats.tum import write_tum
 from shared.geometry import invert_pose, look_at, make_pose
 from shared.trajectory import Trajectory
@@ -185,12 +186,13 @@ def write_slam_folder(
     import cv2
 
     stamps = np.asarray(stamps_ns, dtype=np.int64)
+    slam = SlamFolder(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "keyframes").mkdir(exist_ok=True)
-    write_tum(folder / "keyframes.tum", Trajectory(stamps, np.asarray(session_from_cam)))
+    slam.keyframes.mkdir(exist_ok=True)
+    write_tum(slam.keyframes_tum, Trajectory(stamps, np.asarray(session_from_cam)))
     for stamp, image in zip(stamps, images, strict=True):
-        cv2.imwrite(str(folder / "keyframes" / f"{int(stamp)}.png"), image)
-    write_camchain(folder / "calib" / "camchain.yaml", [CameraCalibration(camera=camera)])
+        cv2.imwrite(str(slam.keyframe_image(int(stamp))), image)
+    write_camchain(slam.camchain, [CameraCalibration(camera=camera)])
     return folder
 
 

@@ -94,6 +94,7 @@ from shared.archive.video import FRAME_SIZE_METADATA, KEYFRAME_METADATA
 from shared.archive.writer import Compression
 from shared.clock import NS_PER_S, seconds_from_ns
 from shared.errors import InputError, OutputExistsError, WreckmapError
+from shared.folders import SessionFolder
 from shared.fsutil import atomic_path, write_text_atomic
 from shared.progress import progress_bar
 
@@ -797,8 +798,9 @@ def import_recording(
     result = ImportResult(recording=session_id, session_dir=session_dir, status="imported")
     with atomic_path(session_dir, overwrite=overwrite) as tmp:
         tmp.mkdir(parents=True)
+        session = SessionFolder(tmp)
         writer = ArchiveWriter(
-            tmp / "recording.mcap",
+            session.recording,
             compression=options.compression,
             chunk_size=options.chunk_size_bytes,
             engine="wreckmap",  # bulk copy: our record writer (shared/archive/writer.py says why)
@@ -835,6 +837,7 @@ def import_recording(
                 height=height,
                 options=options,
                 calib_rows=calib_rows,
+                recordings=[session.relative(session.recording)],
                 imu_rate_hz=imu_rate,
                 warnings=warnings,
             )
@@ -854,7 +857,7 @@ def import_recording(
             writer.abort()
             raise
         write_rosbag2_metadata(tmp)
-        write_text_atomic(tmp / "session.yaml", yaml_text)
+        write_text_atomic(session.session_yaml, yaml_text)
     result.frames = sum(int(row["frames"]) for row in chapter_rows)
     result.imu_samples = imu_count
     result.duration_s = float(sum((v.duration for v in ready), Fraction(0)))
@@ -1112,9 +1115,9 @@ def _write_calibration(
         write_imu_yaml,
     )
 
-    calib = folder / "calib"
-    calib.mkdir()
-    rows: dict[str, Any] = {"camchain": "calib/camchain.yaml"}
+    session = SessionFolder(folder)
+    session.calib.mkdir()
+    rows: dict[str, Any] = {"camchain": session.relative(session.camchain)}
     if options.camchain is not None:
         given = read_camchain(options.camchain)[0].camera  # validate before copying
         if (given.width, given.height) != (width, height):
@@ -1122,12 +1125,12 @@ def _write_calibration(
                 f"{options.camchain}: calibrated for {given.width}x{given.height} pixels, "
                 f"but the video is {width}x{height} (expected a calibration of this video mode)"
             )
-        shutil.copyfile(options.camchain, calib / "camchain.yaml")
+        shutil.copyfile(options.camchain, session.camchain)
         rows["camchain_source"] = f"given ({options.camchain.name})"
     else:
         guess = cameras.guess_camera(camera, width=width, height=height, medium=options.medium)
         write_camchain(
-            calib / "camchain.yaml",
+            session.camchain,
             [
                 CameraCalibration(
                     camera=guess,
@@ -1143,15 +1146,15 @@ def _write_calibration(
         )
     if options.imu_yaml is not None:
         read_imu_yaml(options.imu_yaml)
-        shutil.copyfile(options.imu_yaml, calib / "imu.yaml")
-        rows["imu"] = "calib/imu.yaml"
+        shutil.copyfile(options.imu_yaml, session.imu_yaml)
+        rows["imu"] = session.relative(session.imu_yaml)
         rows["imu_source"] = f"given ({options.imu_yaml.name})"
     elif imu_rate_hz is not None:
         write_imu_yaml(
-            calib / "imu.yaml",
+            session.imu_yaml,
             cameras.gopro_imu_noise(imu_rate_hz, topic=imu_topic(options.imu_index)),
         )
-        rows["imu"] = "calib/imu.yaml"
+        rows["imu"] = session.relative(session.imu_yaml)
         rows["imu_source"] = "typical GoPro MEMS noise (field.gopro.cameras.GOPRO_IMU_NOISE)"
     return rows
 
@@ -1175,6 +1178,7 @@ def _session_yaml(
     height: int,
     options: ImportOptions,
     calib_rows: dict[str, Any],
+    recordings: list[str],
     imu_rate_hz: float | None,
     warnings: list[str],
 ) -> str:
@@ -1204,7 +1208,7 @@ def _session_yaml(
         "id": session_id,
         "source": "gopro import",
         "imported_utc": datetime.now(tz=UTC).isoformat(),
-        "recording": ["recording.mcap"],
+        "recording": recordings,
         "devices": {
             f"cam{options.camera_index}": {
                 "kind": "gopro",
@@ -1315,7 +1319,7 @@ def import_videos(
                 on_result(result)
             continue
         target = out / name
-        if (target / "session.yaml").exists() and not overwrite:
+        if SessionFolder(target).session_yaml.exists() and not overwrite:
             result = ImportResult(recording=name, session_dir=target, status="skipped")
         else:
             try:

@@ -47,12 +47,10 @@ from shared.archive import (
 from shared.archive.writer import Compression
 from shared.clock import seconds_from_ns
 from shared.errors import DeviceError, InputError, OutputExistsError, WreckmapError
+from shared.folders import SessionFolder
 from shared.fsutil import write_text_atomic
 
 log = logging.getLogger(__name__)
-
-SESSION_FILE = "session.yaml"
-RECORDING_PATTERN = "recording_{index:03d}.mcap"
 
 
 @dataclass(kw_only=True)
@@ -212,6 +210,7 @@ class Recorder:
         self.options = options
         self.sources = list(sources)
         self.session_dir = Path(session_dir)
+        self.folder = SessionFolder(self.session_dir)
         self.session_id = options.session_id or self.session_dir.resolve().name
         self.preview = preview
         self.overwrite = overwrite
@@ -353,7 +352,7 @@ class Recorder:
         existing = sorted(
             p.name
             for p in self.session_dir.iterdir()
-            if p.name == SESSION_FILE or p.name.startswith("recording_")
+            if p.name == self.folder.session_yaml.name or SessionFolder.is_recording_part(p.name)
         )
         if existing:
             raise OutputExistsError(
@@ -487,7 +486,7 @@ class Recorder:
     def _open_file(self) -> None:
         if self._writer is not None:
             self._writer.close()
-        path = self.session_dir / RECORDING_PATTERN.format(index=len(self._files))
+        path = self.folder.recording_part(len(self._files))
         self._writer = ArchiveWriter(
             path,
             overwrite=self.overwrite,
@@ -630,15 +629,14 @@ class Recorder:
             if calib is None:
                 continue
             cameras, imu = calib
-            folder = self.session_dir / "calib"
             if cameras:
-                write_camchain(folder / "camchain.yaml", cameras, overwrite=self.overwrite)
+                write_camchain(self.folder.camchain, cameras, overwrite=self.overwrite)
             if imu is not None:
-                write_imu_yaml(folder / "imu.yaml", imu, overwrite=self.overwrite)
+                write_imu_yaml(self.folder.imu_yaml, imu, overwrite=self.overwrite)
             return  # one calibration per session (the first source that has one)
 
     def _session_yaml_text(self, *, final: bool, report: RecordReport | None = None) -> str:
-        calib = self.session_dir / "calib"
+        folder = self.folder
         doc: dict[str, Any] = {
             "id": self.session_id,
             "site": self.options.site,
@@ -661,8 +659,8 @@ class Recorder:
             ],
             "clocks": self._clock_doc(),
             "calibration": {
-                "camchain": "calib/camchain.yaml" if (calib / "camchain.yaml").exists() else None,
-                "imu": "calib/imu.yaml" if (calib / "imu.yaml").exists() else None,
+                "camchain": folder.relative(folder.camchain) if folder.camchain.exists() else None,
+                "imu": folder.relative(folder.imu_yaml) if folder.imu_yaml.exists() else None,
             },
             "recorder": {
                 k: v
@@ -706,7 +704,7 @@ class Recorder:
 
     def _write_session_yaml(self, *, final: bool, report: RecordReport | None = None) -> None:
         write_text_atomic(
-            self.session_dir / SESSION_FILE,
+            self.folder.session_yaml,
             self._session_yaml_text(final=final, report=report),
             overwrite=final or self.overwrite,
         )

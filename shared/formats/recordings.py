@@ -49,6 +49,7 @@ import numpy.typing as npt
 from shared.calibration.kalibr import CameraCalibration, ImuNoise, read_camchain, read_imu_yaml
 from shared.clock import NS_PER_S
 from shared.errors import InputError
+from shared.folders import SessionFolder
 from shared.imu import ImuCleaning, ImuSamples, clean_imu_rows
 
 Image = npt.NDArray[np.uint8]
@@ -237,6 +238,7 @@ class SessionRecording:
 
         self.path = path
         self.folder = path if path.is_dir() else path.parent
+        self._session = SessionFolder(self.folder)
         self.archives = session_archives(path)
         self.imu_topic = request.imu_topic
         self._schemas: dict[str, str] = {}
@@ -282,12 +284,12 @@ class SessionRecording:
 
     @cached_property
     def calibration(self) -> CameraCalibration | None:
-        camchain = self.folder / "calib" / "camchain.yaml"
+        camchain = self._session.camchain
         return read_camchain(camchain)[0] if camchain.is_file() else None
 
     @cached_property
     def imu_noise(self) -> ImuNoise | None:
-        imu_yaml = self.folder / "calib" / "imu.yaml"
+        imu_yaml = self._session.imu_yaml
         return read_imu_yaml(imu_yaml) if imu_yaml.is_file() else None
 
     @cached_property
@@ -297,7 +299,7 @@ class SessionRecording:
         import yaml
 
         try:
-            text = (self.folder / "session.yaml").read_text(encoding="utf-8")
+            text = self._session.session_yaml.read_text(encoding="utf-8")
             document = yaml.safe_load(text)
         except (OSError, UnicodeDecodeError, yaml.YAMLError):
             return False
