@@ -6,10 +6,27 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from shared.errors import InputError
+from shared.folders import DenseFolder, MergeFolder, SfmFolder, SlamFolder
 
-# Where the SfM stage puts its model, relative to its folder, in the order tried.
-_MODEL_SUBDIRS = ("sparse/0", "sparse", "model", ".")
-_IMAGE_SUBDIRS = ("images", "keyframes")
+# A run folder holds each project stage's folder under the stage's name (the pipeline's
+# layout, `postproc.pipeline.runner`); a stage folder itself is taken as well.
+_SFM, _DENSE, _MERGE = "sfm", "dense", "merge"
+# After the SfM stage's model (`SfmFolder.model`), other COLMAP model layouts, relative to
+# the folder, in the order tried: a COLMAP project's own (the .bin files in sparse/ or
+# model/) or the model itself. These are COLMAP's layouts, not our hand-off names.
+_COLMAP_MODEL_SUBDIRS = ("sparse", "model", ".")
+
+
+def _model_dirs(folder: Path) -> list[Path]:
+    return [SfmFolder(folder).model, *(folder / sub for sub in _COLMAP_MODEL_SUBDIRS)]
+
+
+def _image_dirs(folder: Path) -> list[Path]:
+    return [SfmFolder(folder).images, SlamFolder(folder).keyframes]
+
+
+def _expected(root: Path, path: Path) -> str:
+    return path.relative_to(root).as_posix()
 
 
 @dataclass(frozen=True)
@@ -30,22 +47,26 @@ class RunFolder:
 
     def need_model(self) -> Path:
         if self.model_dir is None:
-            raise InputError(f"{self.root}: no COLMAP model (expected sfm/sparse/0/images.bin)")
+            model = _expected(self.root, SfmFolder(self.root / _SFM).model / "images.bin")
+            raise InputError(f"{self.root}: no COLMAP model (expected {model})")
         return self.model_dir
 
     def need_images(self) -> Path:
         if self.image_dir is None:
-            raise InputError(f"{self.root}: no keyframe images (expected sfm/images/)")
+            images = _expected(self.root, SfmFolder(self.root / _SFM).images)
+            raise InputError(f"{self.root}: no keyframe images (expected {images}/)")
         return self.image_dir
 
     def need_fused(self) -> Path:
         if self.fused_ply is None:
-            raise InputError(f"{self.root}: no fused point cloud (expected dense/fused.ply)")
+            fused = _expected(self.root, DenseFolder(self.root / _DENSE).fused)
+            raise InputError(f"{self.root}: no fused point cloud (expected {fused})")
         return self.fused_ply
 
     def need_mesh(self) -> Path:
         if self.mesh_ply is None:
-            raise InputError(f"{self.root}: no mesh (expected dense/mesh.ply)")
+            mesh = _expected(self.root, DenseFolder(self.root / _DENSE).mesh)
+            raise InputError(f"{self.root}: no mesh (expected {mesh})")
         return self.mesh_ply
 
 
@@ -69,21 +90,21 @@ def find_run(root: Path | str) -> RunFolder:
     root = Path(root)
     if not root.is_dir():
         raise InputError(f"{root}: no such run folder")
-    sfm_dirs = [root / "sfm", root]
-    model_dir = _first([s / sub for s in sfm_dirs for sub in _MODEL_SUBDIRS], "model")
-    image_dir = _first([s / sub for s in sfm_dirs for sub in _IMAGE_SUBDIRS], "dir")
-    dense_dirs = [root / "dense", root]
+    sfm_dirs = [root / _SFM, root]
+    model_dir = _first([m for s in sfm_dirs for m in _model_dirs(s)], "model")
+    image_dir = _first([i for s in sfm_dirs for i in _image_dirs(s)], "dir")
+    dense = [DenseFolder(root / _DENSE), DenseFolder(root)]
+    merge = [MergeFolder(root / _MERGE), MergeFolder(root)]
     found = RunFolder(
         root=root,
         model_dir=model_dir.resolve() if model_dir else None,
         image_dir=image_dir,
-        fused_ply=_first([d / "fused.ply" for d in dense_dirs], "file"),
-        mesh_ply=_first([d / "mesh.ply" for d in dense_dirs], "file"),
-        targets_json=_first([root / "merge" / "targets.json", root / "targets.json"], "file"),
+        fused_ply=_first([d.fused for d in dense], "file"),
+        mesh_ply=_first([d.mesh for d in dense], "file"),
+        targets_json=_first([m.targets for m in merge], "file"),
     )
     if all(p is None for p in (found.model_dir, found.fused_ply, found.mesh_ply)):
-        raise InputError(
-            f"{root}: not a run folder (expected sfm/sparse/0, dense/fused.ply or "
-            "dense/mesh.ply inside)"
-        )
+        model = _expected(root, SfmFolder(root / _SFM).model)
+        fused, mesh = (_expected(root, path) for path in (dense[0].fused, dense[0].mesh))
+        raise InputError(f"{root}: not a run folder (expected {model}, {fused} or {mesh} inside)")
     return found

@@ -28,11 +28,16 @@ import numpy.typing as npt
 
 from shared.calibration.cameras import CameraModel
 from shared.errors import InputError
+from shared.folders import MergeFolder, SlamFolder
 from shared.trajectory import Trajectory
 
 FloatArray = npt.NDArray[np.float64]
 
-_SLAM_HINT = "expected a SLAM result folder (keyframes.tum, keyframes/, calib/camchain.yaml)"
+_NAMES = SlamFolder(".")  # the names of a SLAM folder's files, for the messages
+_SLAM_HINT = (
+    f"expected a SLAM result folder ({_NAMES.relative(_NAMES.keyframes_tum)}, "
+    f"{_NAMES.relative(_NAMES.keyframes)}/, {_NAMES.relative(_NAMES.camchain)})"
+)
 
 
 @dataclass
@@ -61,11 +66,11 @@ class SessionInput:
 
 
 def is_slam_folder(folder: Path) -> bool:
-    return (folder / "keyframes.tum").is_file()
+    return SlamFolder(folder).keyframes_tum.is_file()
 
 
 def is_merge_folder(folder: Path) -> bool:
-    return (folder / "transforms.json").is_file() and not is_slam_folder(folder)
+    return MergeFolder(folder).transforms.is_file() and not is_slam_folder(folder)
 
 
 def _png_size(path: Path) -> tuple[int, int] | None:
@@ -97,27 +102,28 @@ def read_slam_folder(folder: Path, name: str) -> SessionInput:
 
     if not folder.is_dir():
         raise InputError(f"{folder}: no such folder ({_SLAM_HINT})")
+    slam = SlamFolder(folder)
     if not is_slam_folder(folder):
-        raise InputError(f"{folder}: no keyframes.tum ({_SLAM_HINT})")
-    calib = folder / "calib" / "camchain.yaml"
+        raise InputError(f"{folder}: no {slam.keyframes_tum.name} ({_SLAM_HINT})")
+    calib = slam.camchain
     if not calib.is_file():
         raise InputError(
             f"{calib}: missing (expected the Kalibr camera chain the keyframes were taken with)"
         )
     camera = read_camchain(calib)[0].camera
-    keyframes = read_tum(folder / "keyframes.tum")
+    keyframes = read_tum(slam.keyframes_tum)
     images: list[Path] = []
     missing: list[str] = []
     for stamp in keyframes.stamps_ns.tolist():
-        path = folder / "keyframes" / f"{stamp}.png"
+        path = slam.keyframe_image(stamp)
         if not path.is_file():
             missing.append(path.name)
         images.append(path)
     if missing:
         raise InputError(
-            f"{folder / 'keyframes'}: {len(missing)} of {len(keyframes)} keyframe images missing, "
-            f"first {missing[0]} (expected keyframes/<timestamp_ns>.png for every line of "
-            "keyframes.tum)"
+            f"{slam.keyframes}: {len(missing)} of {len(keyframes)} keyframe images missing, "
+            f"first {missing[0]} (expected {slam.relative(slam.keyframes)}/<timestamp_ns>.png "
+            f"for every line of {slam.keyframes_tum.name})"
         )
     expected = (int(camera.width), int(camera.height))
     for path in images:
@@ -128,7 +134,7 @@ def read_slam_folder(folder: Path, name: str) -> SessionInput:
                 f"{expected[0]}x{expected[1]} (expected the images the calibration belongs to)"
             )
     drift = None
-    stats_path = folder / "stats.json"
+    stats_path = slam.stats
     if stats_path.is_file():
         try:
             stats = json.loads(stats_path.read_text(encoding="utf-8"))
@@ -168,7 +174,7 @@ def read_merge_transforms(folder: Path) -> dict[str, dict[str, Any]]:
     the trace of the translation block of its 6x6 covariance (rotation first, as the
     merge stage writes it); 0 without either.
     """
-    path = folder / "transforms.json"
+    path = MergeFolder(folder).transforms
     try:
         document = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -215,8 +221,8 @@ def depth_world_from_session(slam_folder: Path) -> FloatArray | None:
     from shared.geometry import make_pose, umeyama
     from shared.trajectory import associate
 
-    world_path = slam_folder.parent / "depth" / "trajectory_world.tum"
-    body_path = slam_folder / "trajectory.tum"
+    world_path = SlamFolder(slam_folder).depth_beside.trajectory_world
+    body_path = SlamFolder(slam_folder).trajectory
     if not (world_path.is_file() and body_path.is_file()):
         return None
     world = read_tum(world_path)
@@ -238,7 +244,7 @@ def _merged_keyframes(path: Path, session: SessionInput) -> Trajectory:
     if not np.array_equal(merged.stamps_ns, session.keyframes.stamps_ns):
         raise InputError(
             f"{path}: {len(merged)} poses whose stamps differ from the {len(session.keyframes)} "
-            f"of {session.folder / 'keyframes.tum'} (expected the same keyframes)"
+            f"of {SlamFolder(session.folder).keyframes_tum} (expected the same keyframes)"
         )
     return merged
 
@@ -278,9 +284,11 @@ def read_inputs(input_dirs: list[Path]) -> list[SessionInput]:
         elif is_slam_folder(folder):
             slam_dirs.append(folder)
         else:
+            slam_file = _NAMES.keyframes_tum.name
+            merge_file = MergeFolder(folder).transforms.name
             raise InputError(
-                f"{folder}: neither keyframes.tum nor transforms.json ({_SLAM_HINT}, "
-                "or a merge folder with transforms.json)"
+                f"{folder}: neither {slam_file} nor {merge_file} ({_SLAM_HINT}, "
+                f"or a merge folder with {merge_file})"
             )
     if len(merges) > 1:
         raise InputError(
@@ -296,7 +304,7 @@ def read_inputs(input_dirs: list[Path]) -> list[SessionInput]:
         found = next((c for c in candidates if c is not None and is_slam_folder(c)), None)
         if found is None:
             raise InputError(
-                f"{merges[0][0] / 'transforms.json'}: session {name!r} has no SLAM folder "
+                f"{MergeFolder(merges[0][0]).transforms}: session {name!r} has no SLAM folder "
                 "(expected it among the inputs, at its 'path', or beside the merge folder)"
             )
         slam_dirs.append(found)
@@ -305,17 +313,17 @@ def read_inputs(input_dirs: list[Path]) -> list[SessionInput]:
     sessions = [read_slam_folder(f, n) for f, n in zip(slam_dirs, names, strict=True)]
     if transforms:
         for session in sessions:
-            entry = transforms.get(session.folder.name)
-            if entry is not None and entry["placed"]:
-                session.world_from_session = entry["world_from_session"]
-                session.world_sigma_m = entry["sigma_m"]
+            placement = transforms.get(session.folder.name)
+            if placement is not None and placement["placed"]:
+                session.world_from_session = placement["world_from_session"]
+                session.world_sigma_m = placement["sigma_m"]
                 session.source = "merge"
-            merged = merges[0][0] / session.folder.name / "keyframes_merged.tum"
+            merged = MergeFolder(merges[0][0]).merged_keyframes(session.folder.name)
             if session.world_from_session is not None and merged.is_file():
                 session.world_keyframes = _merged_keyframes(merged, session)
         if not any(s.world_from_session is not None for s in sessions):
             raise InputError(
-                f"{merges[0][0] / 'transforms.json'}: no session is placed "
+                f"{MergeFolder(merges[0][0]).transforms}: no session is placed "
                 "(expected at least one session with a T_W_S)"
             )
     else:
