@@ -86,7 +86,8 @@ def read_array(path: Path | str) -> F32:
 
 @dataclass(frozen=True)
 class DenseWorkspace:
-    """The folder layout COLMAP's undistorter writes and stereo fusion reads.
+    """The folder layout COLMAP's undistorter writes and stereo fusion reads (COLMAP's
+    names, not our hand-off names; a `DenseFolder`'s `workspace` is one).
 
     root/images/<name> (undistorted images), root/sparse/ (PINHOLE model),
     root/stereo/{depth_maps,normal_maps}/<name>.<kind>.bin with kind "geometric" or
@@ -137,12 +138,12 @@ class PinholeView:
 
     def point_depths_m(self) -> FloatArray:
         """Camera-z depths of the sparse points this image observes (those in front)."""
-        z = self.points_m @ self.cam_from_world[2, :3] + self.cam_from_world[2, 3]
+        z: FloatArray = self.points_m @ self.cam_from_world[2, :3] + self.cam_from_world[2, 3]
         return z[z > 0]
 
     @property
     def world_from_cam(self) -> FloatArray:
-        return np.linalg.inv(self.cam_from_world)
+        return np.asarray(np.linalg.inv(self.cam_from_world), dtype=np.float64)
 
     @property
     def centre_m(self) -> FloatArray:
@@ -246,7 +247,7 @@ def write_known_pose_model(
     width, height = size
     rec = pycolmap.Reconstruction()
     camera = pycolmap.Camera.create_from_model_name(1, camera_model, 1.0, int(width), int(height))
-    camera.params = np.asarray(camera_params, dtype=np.float64)
+    camera.params = np.asarray(camera_params, dtype=np.float64).tolist()
     rec.add_camera_with_trivial_rig(camera)
     observations = observations or [[] for _ in image_names]
     tracks: dict[int, list[tuple[int, int]]] = {}

@@ -46,17 +46,27 @@ from postproc.dense.colmap_io import DenseWorkspace, PinholeView, read_array, wr
 from postproc.dense.options import DenseOptions as DenseOptions
 from postproc.dense.stereo_cpu import CpuStereoOptions
 from shared.errors import InputError, StageError
-from shared.folders import DenseFolder, rebuild, result_stamp
+from shared.folders import DenseFolder, SfmFolder, SlamFolder, rebuild, result_stamp
 from shared.progress import MapFn, serial_map
 
 log = logging.getLogger(__name__)
 
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
-# Where the SfM stage may have put its model and images, in the order tried.
-MODEL_SUBDIRS = ("sparse", "model", "sparse/0", ".")
-IMAGE_SUBDIRS = ("images", "keyframes")
 # Fewer sparse points than this in an image: its depth range falls back to the option.
 _MIN_POINTS_FOR_RANGE = 10
+
+
+def model_dirs(sfm_dir: Path) -> list[Path]:
+    """Where an SfM folder may hold its COLMAP model, in the order tried: a COLMAP
+    project's own layouts (the .bin files in sparse/ or model/: COLMAP's names, not our
+    hand-off names), the SfM stage's model (`SfmFolder.model`), the folder itself."""
+    return [sfm_dir / "sparse", sfm_dir / "model", SfmFolder(sfm_dir).model, sfm_dir]
+
+
+def image_dirs(sfm_dir: Path) -> list[Path]:
+    """Where the model's images may be, in the order tried: the SfM stage's images, a
+    SLAM folder's keyframes."""
+    return [SfmFolder(sfm_dir).images, SlamFolder(sfm_dir).keyframes]
 
 
 # ----------------------------------------------------------------- inputs
@@ -67,13 +77,14 @@ def find_model_dir(sfm_dir: Path) -> Path:
     sfm_dir = Path(sfm_dir)
     if not sfm_dir.is_dir():
         raise InputError(f"{sfm_dir}: no such SfM folder")
-    for sub in MODEL_SUBDIRS:
-        candidate = sfm_dir / sub
+    candidates = model_dirs(sfm_dir)
+    for candidate in candidates:
         if all((candidate / name).is_file() for name in MODEL_FILES):
-            return candidate.resolve() if sub == "." else candidate
+            return candidate.resolve() if candidate == sfm_dir else candidate
+    subdirs = [c.relative_to(sfm_dir).as_posix() + "/" for c in candidates if c != sfm_dir]
     raise InputError(
         f"{sfm_dir}: no COLMAP model (expected {', '.join(MODEL_FILES)} in one of "
-        f"{', '.join(s + '/' for s in MODEL_SUBDIRS if s != '.')} or the folder itself)"
+        f"{', '.join(subdirs)} or the folder itself)"
     )
 
 
@@ -93,9 +104,7 @@ def registered_image_names(model_dir: Path) -> list[str]:
 
 def find_image_dir(sfm_dir: Path, names: list[str], image_dir: Path | None) -> Path:
     """The folder holding every image the model names."""
-    candidates = [Path(image_dir)] if image_dir is not None else [
-        Path(sfm_dir) / sub for sub in IMAGE_SUBDIRS
-    ]  # fmt: skip
+    candidates = [Path(image_dir)] if image_dir is not None else image_dirs(Path(sfm_dir))
     for folder in candidates:
         if folder.is_dir() and (folder / names[0]).is_file():
             missing = [n for n in names if not (folder / n).is_file()]
@@ -210,7 +219,8 @@ def compute_view_maps(job: ViewJob) -> dict[str, Any]:
         pixels = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if pixels is None:
             raise InputError(f"{path}: cannot read the undistorted image")
-        stereo_views.append(StereoView(image=pixels, K=K, cam_from_world=pose))
+        image = np.asarray(pixels, dtype=np.uint8)  # IMREAD_GRAYSCALE: 8 bits already
+        stereo_views.append(StereoView(image=image, K=K, cam_from_world=pose))
     depth, normals = depth_map(
         stereo_views[0],
         stereo_views[1:],
