@@ -237,26 +237,22 @@ def bench_gopro() -> None:
     from field.gopro.importer import ImportOptions, import_recording
     from postproc.calibrate.stage import ImuCalibrationOptions, run_imu
     from shared.errors import StageError
+    from shared.folders import CalibrationFolder, SessionFolder
 
     print("== 5. real GoPro clips: camera-IMU from features (guessed intrinsics)")
     folder = REPO.parent / "shared" / "data" / "gopro"
     with tempfile.TemporaryDirectory() as tmp:
         for clip in sorted(folder.glob("*.mp4")):
-            session = Path(tmp) / clip.stem
-            import_recording(ImportOptions(), [clip], session)
+            session = SessionFolder(Path(tmp) / clip.stem)
+            out = CalibrationFolder(session.path / "out")
+            import_recording(ImportOptions(), [clip], session.path)
             start = time.perf_counter()
             try:
-                run_imu(
-                    ImuCalibrationOptions(),
-                    session,
-                    session / "calib" / "camchain.yaml",
-                    None,
-                    session / "out",
-                )
+                run_imu(ImuCalibrationOptions(), session.path, session.camchain, None, out.path)
             except StageError as error:
                 print(f"  {clip.name}: refused: {error}")
                 continue
-            report = json.loads((session / "out" / "camera_imu.json").read_text())
+            report = json.loads(out.imu_report.read_text())
             rotation = np.array(report["cam_from_imu_rotation"])
             print(
                 f"  {clip.name}: {np.degrees(rotation_angle_rad(rotation)):.2f} deg from the "

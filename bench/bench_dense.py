@@ -40,12 +40,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from postproc.dense.colmap_io import read_pinhole_views, write_known_pose_model
+from postproc.dense.colmap_io import DenseWorkspace, read_pinhole_views, write_known_pose_model
 from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, visibility
 from postproc.dense.fusion import FusionOptions
 from postproc.dense.stage import DenseOptions, run
 from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
 from shared.calibration.cameras import PinholeRadtan
+from shared.folders import DenseFolder, SfmFolder
 from shared.formats.ply import read_ply
 from sim.mesh import scene_mesh
 from sim.render import Renderer
@@ -147,23 +148,24 @@ def main() -> None:
     keys = pick_keyframes(all_poses, args.keyframe_step)
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench_dense."))
     sfm_dir, out_dir = work / "sfm", work / args.dense_name
+    sfm, dense = SfmFolder(sfm_dir), DenseFolder(out_dir)  # the model as the SfM stage puts it
     print(f"work folder: {work}")
 
     start = time.perf_counter()
     _ = sim.scene
     poses = [all_poses[i] for i in keys]
     names = [f"{int(stamps[i])}.png" for i in keys]
-    reuse = (sfm_dir / "sparse").exists() and all((sfm_dir / "images" / n).is_file() for n in names)
-    (sfm_dir / "images").mkdir(parents=True, exist_ok=True)
+    reuse = sfm.model.exists() and all((sfm.images / n).is_file() for n in names)
+    sfm.images.mkdir(parents=True, exist_ok=True)
     if not reuse:
         depths = []
         for i, name in zip(keys, names, strict=True):
             frame = sim.render_frame(0, int(stamps[i]), frame_index=int(i))
-            cv2.imwrite(str(sfm_dir / "images" / name), frame.image_rgb[..., ::-1])
+            cv2.imwrite(str(sfm.images / name), frame.image_rgb[..., ::-1])
             depths.append(frame.depth_m)
         points, observations = sparse_points(camera, poses, depths)
         write_known_pose_model(
-            sfm_dir / "sparse", camera_model="OPENCV",
+            sfm.model, camera_model="OPENCV",
             camera_params=[camera.fx, camera.fy, camera.cx, camera.cy, camera.k1, camera.k2,
                            camera.p1, camera.p2],
             size=(camera.width, camera.height), image_names=names,
@@ -193,13 +195,13 @@ def main() -> None:
     run(options, sfm_dir, out_dir)
     dense_s = time.perf_counter() - start
     load_after = os.getloadavg()[0]
-    report = json.loads((out_dir / "dense.json").read_text())
+    report = json.loads(dense.report.read_text())
 
     # Truth: the scene mesh; completeness samples seen by >= 3 keyframes in the undistorted
     # cameras (true depth rendered through the workspace's pinhole camera).
     start = time.perf_counter()
     truth = scene_mesh(sim.scene)
-    views = read_pinhole_views(out_dir / "workspace" / "sparse")
+    views = read_pinhole_views(DenseWorkspace(dense.workspace).sparse_dir)
     by_name = {v.name: v for v in views}
     K = views[0].K
     pinhole = PinholeRadtan(
@@ -231,7 +233,7 @@ def main() -> None:
     seen = samples[seen_mask]
     third = ranges[seen_mask, 2]  # the range within which three keyframes see the sample
     seen_near = seen[third <= args.near_range]
-    fused = read_ply(out_dir / "fused.ply")
+    fused = read_ply(dense.fused)
     thresholds = (0.02, 0.05, 0.10)
     rows = [("fused points", evaluate(fused.vertices, v, t, seen, thresholds_m=thresholds))]
     near_label = f"fused, seen <= {args.near_range:g} m"
@@ -243,7 +245,7 @@ def main() -> None:
         label = f"fused, band {lo:g}-{hi:g} m" if np.isfinite(hi) else f"fused, band {lo:g}+ m"
         scores = evaluate(fused.vertices, v, t, in_band, thresholds_m=thresholds)
         band_rows.append((f"{label} ({100 * len(in_band) / max(len(seen), 1):.0f} %)", scores))
-    mesh_path = out_dir / "mesh.ply"
+    mesh_path = dense.mesh
     if mesh_path.is_file():
         mesh = read_ply(mesh_path)
         mesh_samples, _ = sample_surface(mesh.vertices, mesh.faces, 0.02, seed=2)

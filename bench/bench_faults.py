@@ -110,14 +110,16 @@ def imu_of(path: Path) -> np.ndarray:
 
 def sigkill(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> None:
     from field.record.recover import recover
+    from shared.archive.writer import part_path
     from shared.clock import seconds_from_ns
+    from shared.folders import SessionFolder
 
     out = work / f"kill{row.trials}"
     proc = subprocess.Popen(
         cli("record", "--source", "sim", "--out", str(out), "--duration", "30", *sim_args(sim)),
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env(),
     )  # fmt: skip
-    part = out / "recording_000.mcap.part"
+    part = part_path(SessionFolder(out).recording_part(0))
     deadline = time.monotonic() + 120
     while not (part.exists() and part.stat().st_size > 0) and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -135,6 +137,7 @@ def sigkill(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> No
 
 def disk_watermark(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> None:
     from shared.archive import ArchiveReader
+    from shared.folders import SessionFolder
 
     size = rng.choice([1024, 1536, 2048])
     with tmpfs(work / f"card{row.trials}", size) as card:
@@ -147,7 +150,7 @@ def disk_watermark(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]
         stopped_s = time.monotonic() - t0
         counted = sum(reported(run.stdout, t) for t in ("/imu0", "/cam0/video", "/depth0"))
         in_files = 0
-        for path in sorted((card / "s").glob("recording_*.mcap")):
+        for path in SessionFolder(card / "s").recording_parts():
             with ArchiveReader(path) as reader:
                 in_files += sum(
                     t.message_count for name, t in reader.topics().items() if name != "/session"

@@ -97,6 +97,7 @@ from shared.calibration.aprilgrid_detection import (
     line_fit_residuals_px,
 )
 from shared.clock import seconds_from_ns
+from shared.folders import SlamFolder
 from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose, make_pose, pose_difference, rotation_mean_chordal
 from shared.trajectory import Trajectory
@@ -299,7 +300,7 @@ def make_fieldsim_survey(
         # The SLAM trajectory from the session start (its first pose anchors the frame);
         # camera poses stand in for the body's here: the stage only reads its stamps.
         write_tum(
-            root / f"dive{k + 1}" / "trajectory.tum", Trajectory(stamps, np.array(slam_poses))
+            SlamFolder(root / f"dive{k + 1}").trajectory, Trajectory(stamps, np.array(slam_poses))
         )
         # Per-keyframe truth for the at-target reference (beside the folders, not in them).
         np.savez(
@@ -571,7 +572,7 @@ def main() -> int:
             if args.render_only:
                 print(f"seed {seed}: rendered in {render_s:.0f} s ({root})", flush=True)
                 continue
-            keyframes = sum(len(list((f / "keyframes").iterdir())) for f in folders)
+            keyframes = sum(len(list(SlamFolder(f).keyframes.iterdir())) for f in folders)
             line = f"seed {seed}: {keyframes} keyframes ready in {render_s:.0f} s;"
             at_targets = args.scene == "fieldsim"
             references = (
@@ -635,7 +636,7 @@ def main() -> int:
                     estimate = np.array(entry["T_W_S"])
                     rot, trans = pose_difference(estimate, expected)
                     # The session's keyframes (its map) moved into W.
-                    points = read_tum(folders[k - 1] / "keyframes.tum").positions
+                    points = read_tum(SlamFolder(folders[k - 1]).keyframes_tum).positions
                     moved = points @ (estimate[:3, :3] - expected[:3, :3]).T
                     moved += estimate[:3, 3] - expected[:3, 3]
                     map_error = float(np.sqrt(np.mean(np.sum(moved**2, axis=1))))

@@ -109,13 +109,16 @@ def _csv_rows(path: Path) -> list[str]:
 
 
 def project_file(root: Path, sim: Path, *, euroc: bool) -> Path:
+    from shared.folders import SessionFolder
+
     sessions = sorted(p for p in sim.glob("session_*") if p.is_dir())
     lines = [
         f"name: bench {sim.name}",
         "output: run",
         f"truth: {sim / 'truth.json'}",
-        f"calibration: {{camchain: {sim / 'calib' / 'camchain.yaml'}, "
-        f"imu: {sim / 'calib' / 'imu.yaml'}}}",
+        # The survey's calib/ is laid out as a session's (sim.survey).
+        f"calibration: {{camchain: {SessionFolder(sim).camchain}, "
+        f"imu: {SessionFolder(sim).imu_yaml}}}",
         "targets:",
         *[f"  - {t}" for t in sorted((sim / "targets").glob("*.yaml"))],
         "sessions:",
@@ -160,9 +163,10 @@ def describe(project: object) -> None:
     """Print what drives the SfM and dense time (keyframes, track length, reference views)
     and the errors of the outputs against the simulator's truth."""
     from postproc.pipeline.evaluate import evaluate_project
+    from postproc.pipeline.stages import RunFolders
 
-    out = project.output  # type: ignore[attr-defined]
-    sfm_stats, dense_stats = out / "sfm" / "stats.json", out / "dense" / "dense.json"
+    folders = RunFolders(project.output)  # type: ignore[attr-defined]
+    sfm_stats, dense_stats = folders.sfm().stats, folders.dense().report
     if sfm_stats.is_file():
         sfm = json.loads(sfm_stats.read_text())
         print(

@@ -57,6 +57,7 @@ def main() -> int:
     args = parser.parse_args()
 
     from field.record.sources.sim import SimOptions, prepare_clip
+    from shared.folders import SessionFolder
 
     sim = {
         "cameras": args.cameras,
@@ -132,7 +133,7 @@ def main() -> int:
     rss = [s[2] for s in samples]
     first_min = [s[2] for s in samples if 5.0 <= s[0] < 65.0] or rss
     last_min = [s[2] for s in samples if s[0] >= samples[-1][0] - 60.0] or rss
-    files = sorted(out.glob("recording_*.mcap"))
+    files = SessionFolder(out).recording_parts()
     size = sum(f.stat().st_size for f in files)
     dropped = re.search(r"(\d+) dropped", stdout)
     print(stdout.strip())

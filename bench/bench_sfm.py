@@ -38,7 +38,6 @@ survey there is reused by later runs with the same --keyframes.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import pickle
 import shutil
@@ -54,6 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from postproc.sfm.features import FeatureOptions
 from postproc.sfm.stage import SfmOptions, run
+from shared.folders import SfmFolder, SlamFolder
 from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose
 from shared.trajectory import Trajectory, ate
@@ -111,16 +111,15 @@ def subset(sessions: list[SlamLikeSession], fraction: float, root: Path) -> list
     for s in sessions:
         n = max(round(len(s.estimate) * fraction), 3)
         folder = root / s.folder.name
-        (folder / "keyframes").mkdir(parents=True)
-        shutil.copytree(s.folder / "calib", folder / "calib")
-        shutil.copyfile(s.folder / "stats.json", folder / "stats.json")
+        source, slam = SlamFolder(s.folder), SlamFolder(folder)
+        slam.keyframes.mkdir(parents=True)
+        shutil.copytree(source.calib, slam.calib)
+        shutil.copyfile(source.stats, slam.stats)
         estimate = Trajectory(s.estimate.stamps_ns[:n], s.estimate.poses[:n])
         truth = Trajectory(s.truth_world_from_cam.stamps_ns[:n], s.truth_world_from_cam.poses[:n])
-        write_tum(folder / "keyframes.tum", estimate)
+        write_tum(slam.keyframes_tum, estimate)
         for stamp in estimate.stamps_ns.tolist():
-            (folder / "keyframes" / f"{stamp}.png").symlink_to(
-                s.folder / "keyframes" / f"{stamp}.png"
-            )
+            slam.keyframe_image(stamp).symlink_to(source.keyframe_image(stamp))
         out.append(SlamLikeSession(folder, s.world_from_session, truth, estimate))
     return out
 
@@ -134,7 +133,7 @@ def run_ours(
     start = time.perf_counter()
     run(options, [merge], out, overwrite=True)
     total = time.perf_counter() - start
-    return json.loads((out / "stats.json").read_text()), total, out
+    return SfmFolder(out).read_stats(), total, out
 
 
 def print_ours(
@@ -159,7 +158,7 @@ def print_ours(
     )
     for s in sessions:
         prior = s.estimate.transformed(s.world_from_session)
-        refined = read_tum(out / "sessions" / s.folder.name / "keyframes.tum")
+        refined = read_tum(SfmFolder(out).session_keyframes(s.folder.name))
         print(f"  {s.folder.name} prior   ATE {ate_row(prior, s.truth_world_from_cam)}")
         print(f"  {s.folder.name} refined ATE {ate_row(refined, s.truth_world_from_cam)}")
 
@@ -269,19 +268,20 @@ def baseline(
     import pycolmap
 
     work.mkdir(parents=True, exist_ok=True)
-    images = out / "images"
-    with pycolmap.Database.open(out / "database.db") as handle:
+    sfm = SfmFolder(out)
+    images = sfm.images
+    with pycolmap.Database.open(sfm.database) as handle:
         names = sorted(image.name for image in handle.read_all_images())
     n = len(names)
     exhaustive = n * (n - 1) / 2
-    ours = {tuple(sorted(line.split())) for line in (out / "pairs.txt").read_text().splitlines()}
+    ours = {tuple(sorted(line.split())) for line in sfm.pairs.read_text().splitlines()}
     share = len(ours) / exhaustive
     rng = np.random.default_rng(0)
     figures: dict[str, float] = {"keyframes": n, "exhaustive_pairs": exhaustive}
 
     print("  (a) incremental mapping from scratch on our database (no priors), measured")
     db = work / "ours_no_priors.db"
-    shutil.copyfile(out / "database.db", db)
+    shutil.copyfile(sfm.database, db)
     figures["mapping_s"], poses = incremental(db, images, work / "inc_same", threads)
     ates = baseline_ate(poses, sessions, "incremental")
     figures["ate_sim3_max_m"] = float(np.nanmax(ates))
@@ -299,7 +299,7 @@ def baseline(
         return chosen
 
     print("  (b) our feature budget, exhaustive matching (pair rate measured, extrapolated)")
-    rate = _pair_rate(out / "database.db", pick(names, sample_pairs), work, threads, "ours")
+    rate = _pair_rate(sfm.database, pick(names, sample_pairs), work, threads, "ours")
     figures["ours_pair_rate_s"] = rate
     figures["ours_exhaustive_s"] = rate * exhaustive
     print(
@@ -312,7 +312,7 @@ def baseline(
         f"(measured on {sample_images} images and {sample_pairs} of their pairs, extrapolated)"
     )
     db = work / "defaults.db"
-    shutil.copyfile(out / "database.db", db)  # the same cameras and images, nothing else
+    shutil.copyfile(sfm.database, db)  # the same cameras and images, nothing else
     with pycolmap.Database.open(db) as handle:
         handle.clear_two_view_geometries()
         handle.clear_matches()
@@ -396,7 +396,7 @@ def main() -> None:
         mapping_ours = sec["refine_s"]
         ours_ate = max(
             ate(
-                read_tum(out / "sessions" / s.folder.name / "keyframes.tum"),
+                read_tum(SfmFolder(out).session_keyframes(s.folder.name)),
                 s.truth_world_from_cam,
                 align="sim3",
             ).rmse_m

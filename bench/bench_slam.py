@@ -45,7 +45,6 @@ the VIO rows use SE(3), as the target asks.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -66,6 +65,7 @@ from postproc.slam.types import FloatArray
 from postproc.slam.visual_only import VisualOnlyEstimator
 from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.errors import StageError
+from shared.folders import SessionFolder, SlamFolder
 from shared.formats.euroc import read_euroc
 from shared.formats.tum import read_tum
 from shared.trajectory import Trajectory, ate
@@ -258,8 +258,8 @@ def rendered(
             except StageError as error:
                 print(f"{folder.name} {'VIO' if use_imu else 'visual-only'}: FAILED ({error})")
                 continue
-            stats = json.loads((out / "stats.json").read_text())
-            estimate = read_tum(out / "trajectory.tum")
+            stats = SlamFolder(out).read_stats()
+            estimate = read_tum(SlamFolder(out).trajectory)
             # Ground truth is on the IMU clock; the trajectory on the camera clock.
             estimate = Trajectory(estimate.stamps_ns + shift_ns, estimate.poses)
             align = "se3" if use_imu else "sim3"
@@ -325,7 +325,7 @@ def real_recordings(shared: Path) -> list[RealRecording]:
 def _import_gopro(video: Path, work: Path) -> Path:
     """Import a GoPro clip with the field CLI (both samples were filmed in air)."""
     session = work / f"session_{video.stem}"
-    if (session / "recording.mcap").is_file():
+    if SessionFolder(session).recording.is_file():
         return session
     env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
     command = [sys.executable, "-m", "field.cli", "gopro", "import", str(video)]
@@ -359,14 +359,17 @@ def colmap_keyframe_poses(slam_dir: Path, work: Path) -> tuple[list[dict[int, Fl
     from postproc.sfm.refine import camera_poses
     from shared.calibration.kalibr import read_camchain
 
-    camera = read_camchain(slam_dir / "calib" / "camchain.yaml")[0].camera
+    slam = SlamFolder(slam_dir)
+    camera = read_camchain(slam.camchain)[0].camera
     if work.exists():
         shutil.rmtree(work)
+    # `work` is a scratch COLMAP project (images/, database.db, sparse/: COLMAP's usual
+    # names), not a hand-off folder.
     image_dir = work / "images"
     image_dir.mkdir(parents=True)
     width, height = int(camera.width), int(camera.height)
     names = []
-    for path in sorted((slam_dir / "keyframes").glob("*.png")):
+    for path in sorted(slam.keyframes.glob("*.png")):
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         # Decoded H.264 frames can keep the coded size (854 -> 864 px wide): the
         # calibrated image is the top-left width x height.
@@ -440,7 +443,7 @@ def _drone_positions(video: Path, session: Path) -> Trajectory | None:
     if found is None:
         return None
     times_ns, ned_m = found
-    document = yaml.safe_load((session / "session.yaml").read_text(encoding="utf-8"))
+    document = yaml.safe_load(SessionFolder(session).session_yaml.read_text(encoding="utf-8"))
     start_ns = int(document["chapters"][0]["start_ns"])
     poses = np.tile(np.eye(4), (len(times_ns), 1, 1))
     poses[:, :3, 3] = ned_m
@@ -468,7 +471,7 @@ def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict
     except Exception as error:  # a bench row, not a crash
         row["error"] = f"{type(error).__name__}: {error}"
         return row
-    stats = json.loads((out / "stats.json").read_text())
+    stats = SlamFolder(out).read_stats()
     row.update(
         frames=stats.get("frames"),
         keyframes=stats.get("keyframes"),
@@ -482,8 +485,8 @@ def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict
     for key in ("tracking_losses", "map_segments", "segments", "reinitialisations"):
         if key in stats:
             row[key] = stats[key]
-    keyframes = read_tum(out / "keyframes.tum")
-    trajectory = read_tum(out / "trajectory.tum")
+    keyframes = read_tum(SlamFolder(out).keyframes_tum)
+    trajectory = read_tum(SlamFolder(out).trajectory)
     speeds = np.linalg.norm(np.diff(keyframes.positions, axis=0), axis=1) / np.maximum(
         seconds_from_ns(np.diff(keyframes.stamps_ns)), 1e-9
     )
