@@ -165,6 +165,7 @@ def disk_watermark(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]
 
 def disk_enospc(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -> None:
     from field.record.recover import recover
+    from shared.folders import SessionFolder
 
     size = rng.choice([512, 768, 1024])
     with tmpfs(work / f"full{row.trials}", size) as card:
@@ -179,7 +180,7 @@ def disk_enospc(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) -
         if parts:
             path = recover(parts[0], work / f"recovered{row.trials}.mcap").output
         else:
-            path = sorted((card / "s").glob("recording_*.mcap"))[-1]
+            path = SessionFolder(card / "s").recording_parts()[-1]
         row.recover_s.append(time.monotonic() - t0)
         logs = imu_of(path)
         if np.any(np.diff(logs) < 0):

@@ -143,6 +143,9 @@ def write_project(
 ) -> Path:
     """The demo's project file: GoPro sessions (or the simulator's EuRoC folders with
     intake="euroc"), the downloaded dives, the simulator's calibration and truth."""
+    from shared.folders import SessionFolder
+
+    calib = SessionFolder(sim)  # the survey's calib/ is laid out as a session's (sim.survey)
     sessions = sorted(p for p in sim.glob("session_*") if p.is_dir())
     lines = [
         "# Written by bench/demo.py (see deploy/project.example.yaml for every key).",
@@ -150,8 +153,8 @@ def write_project(
         f"output: {'run' if intake == 'gopro' else 'run-' + intake}",
         f"truth: {os.path.relpath(sim / 'truth.json', out)}",
         "calibration:",
-        f"  camchain: {os.path.relpath(sim / 'calib' / 'camchain.yaml', out)}",
-        f"  imu: {os.path.relpath(sim / 'calib' / 'imu.yaml', out)}",
+        f"  camchain: {os.path.relpath(calib.camchain, out)}",
+        f"  imu: {os.path.relpath(calib.imu_yaml, out)}",
         "targets:",
         *[f"  - {os.path.relpath(t, out)}" for t in sorted((sim / "targets").glob("*.yaml"))],
         "sessions:",

@@ -250,9 +250,9 @@ def export_rosbag2(
 ) -> Path:
     """The session's MCAP files + metadata.yaml, hard-linked (or copied) into folder `out`."""
     del options  # the bag is the session's archive as it is
-    metadata = session_dir / "metadata.yaml"
+    metadata = SessionFolder(session_dir).bag_metadata
     if not metadata.is_file():
-        raise InputError(f"{session_dir}: no metadata.yaml (not a complete session folder)")
+        raise InputError(f"{session_dir}: no {metadata.name} (not a complete session folder)")
     files = [*session_archives(session_dir), metadata]
     with atomic_path(out, overwrite=overwrite) as tmp:
         tmp.mkdir(parents=True)
