@@ -320,7 +320,7 @@ class Recorder:
         try:
             self._write_session_yaml(final=True, report=report)
         except OSError as error:
-            log.error("session.yaml not updated: %s", error)
+            log.error("%s not updated: %s", self.folder.session_yaml, error)
         self._publish_final_health(report)
         return report
 
