@@ -25,20 +25,31 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from postproc.calibrate.camera_imu import (  # noqa: E402
+    CameraImuResult,
     RotationIntervals,
     estimate_camera_imu,
     intervals_from_orientations,
 )
-from postproc.calibrate.frame_selection import FrameSelectionOptions, select_frames  # noqa: E402
-from postproc.calibrate.intrinsics import IntrinsicsOptions, calibrate_intrinsics  # noqa: E402
+from postproc.calibrate.frame_selection import (  # noqa: E402
+    FrameSelectionOptions,
+    GridView,
+    select_frames,
+)
+from postproc.calibrate.intrinsics import (  # noqa: E402
+    CameraModelName,
+    IntrinsicsOptions,
+    calibrate_intrinsics,
+)
 from postproc.calibrate.stage import detect_grid  # noqa: E402
 from postproc.calibrate.two_camera import estimate_rig_sync  # noqa: E402
 from postproc.calibrate.visual_rotation import (  # noqa: E402
@@ -47,9 +58,11 @@ from postproc.calibrate.visual_rotation import (  # noqa: E402
 )
 from shared.calibration.aprilgrid import AprilGridTarget  # noqa: E402
 from shared.calibration.aprilgrid_detection import DetectionOptions  # noqa: E402
+from shared.calibration.cameras import CameraModel  # noqa: E402
 from shared.geometry import rotation_angle_rad, so3_exp  # noqa: E402
 from sim.calibration import (  # noqa: E402
     TARGET,
+    Recording,
     board_views,
     equidistant_camera,
     radtan_camera,
@@ -58,7 +71,7 @@ from sim.calibration import (  # noqa: E402
 )
 
 
-def _views(images):
+def _views(images: Sequence[npt.NDArray[np.uint8]]) -> list[GridView]:
     views = []
     for index, image in enumerate(images):
         view = detect_grid(
@@ -71,6 +84,7 @@ def _views(images):
 
 def bench_intrinsics(seeds: list[int], quick: bool) -> None:
     print("== 1. intrinsics from rendered views (relative error %, RMS px)")
+    cases: list[tuple[CameraModelName, Callable[[int, int], CameraModel], int, tuple[float, float]]]
     cases = [
         ("pinhole-radtan", radtan_camera, 20, (0.45, 0.9)),
         ("pinhole-equidistant", equidistant_camera, 14, (0.28, 0.5)),
@@ -104,10 +118,12 @@ def bench_intrinsics(seeds: list[int], quick: bool) -> None:
         print(f"  {model}: worst |error| {worst:.3f} % (target < 0.5 %)")
 
 
-def _camera_imu_errors(rec, intervals):
+def _camera_imu_errors(
+    rec: Recording, intervals: RotationIntervals
+) -> tuple[float, float, CameraImuResult]:
     result = estimate_camera_imu(intervals, rec.imu_stamps_ns, rec.gyro_rad_s)
-    rotation = np.degrees(
-        rotation_angle_rad(result.cam_from_imu_rotation @ rec.cam_from_imu[:3, :3].T)
+    rotation = float(
+        np.degrees(rotation_angle_rad(result.cam_from_imu_rotation @ rec.cam_from_imu[:3, :3].T))
     )
     shift_ms = 1e3 * (result.timeshift_cam_imu_s - rec.timeshift_cam_imu_s)
     return rotation, shift_ms, result
@@ -148,17 +164,18 @@ def bench_camera_imu(seeds: list[int], quick: bool) -> None:
             )
         starts, ends, grid, features = [], [], [], []
         for k in range(len(rec.images) - 1):
-            if poses[k] is not None and poses[k + 1] is not None:
+            pose, following = poses[k], poses[k + 1]
+            if pose is not None and following is not None:
                 starts.append(rec.frame_stamps_ns[k])
                 ends.append(rec.frame_stamps_ns[k + 1])
-                grid.append(poses[k][:3, :3].T @ poses[k + 1][:3, :3])
+                grid.append(pose[:3, :3].T @ following[:3, :3])
         f_starts, f_ends = [], []
         for k in range(len(rec.images) - 1):
-            rotation = rotation_from_features(rec.camera, rec.images[k], rec.images[k + 1])
-            if rotation is not None:
+            relative = rotation_from_features(rec.camera, rec.images[k], rec.images[k + 1])
+            if relative is not None:
                 f_starts.append(rec.frame_stamps_ns[k])
                 f_ends.append(rec.frame_stamps_ns[k + 1])
-                features.append(rotation)
+                features.append(relative)
         for name, s, e, rotations in (
             ("grid poses", starts, ends, grid),
             ("features", f_starts, f_ends, features),
@@ -193,6 +210,10 @@ def bench_rig(seeds: list[int]) -> None:
     print(f"  worst: |offset| {worst_offset:.4f} ms, rotation {worst_rotation:.4f} deg")
 
 
+def _fx(camera: CameraModel) -> float:
+    return float(camera.intrinsic_matrix[0, 0])
+
+
 def bench_photos() -> None:
     import cv2
 
@@ -202,7 +223,11 @@ def bench_photos() -> None:
     views = []
     size = (0, 0)
     for index, name in enumerate(("000.jpg", "001.jpg")):
-        image = cv2.imread(str(folder / name), cv2.IMREAD_GRAYSCALE)
+        read = cv2.imread(str(folder / name), cv2.IMREAD_GRAYSCALE)
+        if read is None:
+            print(f"  {name}: cannot read")
+            return
+        image = np.asarray(read, np.uint8)
         size = (image.shape[1], image.shape[0])
         view = detect_grid(
             image, target, index=index, stamp_ns=index, detection=DetectionOptions(), min_tags=4
@@ -216,8 +241,9 @@ def bench_photos() -> None:
     )
     for label, subset in (("000.jpg", views[:1]), ("001.jpg", views[1:]), ("both", views)):
         result = calibrate_intrinsics(subset, size, simple)
+        sigma = result.std_intrinsics[1]
         print(
-            f"  {label:8s}: f = {result.camera.fx:.1f} px (1-sigma {result.std_intrinsics[1]:.1f}),"
+            f"  {label:8s}: f = {_fx(result.camera):.1f} px (1-sigma {sigma:.1f}),"
             f" RMS {result.rms_px:.2f} px, {result.corner_count} corners, image {size[0]}x{size[1]}"
         )
     with_distortion = calibrate_intrinsics(
@@ -225,7 +251,7 @@ def bench_photos() -> None:
     )
     d = with_distortion.camera.opencv_distortion
     print(
-        f"  both, + radtan: f = {with_distortion.camera.fx:.1f} px, k1 {d[0]:+.3f} k2 {d[1]:+.3f}"
+        f"  both, + radtan: f = {_fx(with_distortion.camera):.1f} px, k1 {d[0]:+.3f} k2 {d[1]:+.3f}"
         f", RMS {with_distortion.rms_px:.2f} px (4 more parameters from 2 views: not trusted)"
     )
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from field.divecomputer import protocol
@@ -47,17 +48,15 @@ def main() -> None:
     print(
         f"10 one-hour dives at 10 s: {plain} log bytes, {packed} compressed ({plain / packed:.1f}x)"
     )
-    fast = {"settle_s": 0.0, "read_timeout_s": 0.3, "backoff_s": 0.0, "backoff_max_s": 0.0}
-    run_case("clean", FaultOptions(), DownloadOptions(**fast))
-    run_case("clean, verify", FaultOptions(), DownloadOptions(**fast, verify=True))
-    run_case(
-        "0.1% dropped", FaultOptions(drop_rate=0.001), DownloadOptions(**fast, block_retries=20)
-    )
-    run_case("1% dropped", FaultOptions(drop_rate=0.01), DownloadOptions(**fast, block_retries=80))
+    fast = DownloadOptions(settle_s=0.0, read_timeout_s=0.3, backoff_s=0.0, backoff_max_s=0.0)
+    run_case("clean", FaultOptions(), fast)
+    run_case("clean, verify", FaultOptions(), replace(fast, verify=True))
+    run_case("0.1% dropped", FaultOptions(drop_rate=0.001), replace(fast, block_retries=20))
+    run_case("1% dropped", FaultOptions(drop_rate=0.01), replace(fast, block_retries=80))
     run_case(
         "1% corrupted, verify",
         FaultOptions(corrupt_rate=0.01),
-        DownloadOptions(**fast, block_retries=80, verify=True),
+        replace(fast, block_retries=80, verify=True),
     )
 
 

@@ -228,7 +228,7 @@ def main() -> None:
             true_depths, nearest=3,
         )  # fmt: skip
         np.savez(cache, samples=samples, counts=counts, ranges=ranges)
-    v, t = truth.vertices, truth.triangles
+    v, t = truth.vertices, truth.triangles.astype(np.int64)
     seen_mask = counts >= 3
     seen = samples[seen_mask]
     third = ranges[seen_mask, 2]  # the range within which three keyframes see the sample
@@ -248,6 +248,7 @@ def main() -> None:
     mesh_path = dense.mesh
     if mesh_path.is_file():
         mesh = read_ply(mesh_path)
+        assert mesh.faces is not None, f"{mesh_path}: no faces"
         mesh_samples, _ = sample_surface(mesh.vertices, mesh.faces, 0.02, seed=2)
         rows.append(
             ("mesh (2 cm samples)", evaluate(mesh_samples, v, t, seen, thresholds_m=thresholds))

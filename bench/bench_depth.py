@@ -36,9 +36,11 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -47,6 +49,7 @@ from postproc.depth.paper import paper_depth_sync
 from postproc.depth.sync import (
     AmbiguityLimits,
     ClockPrior,
+    ClockSolution,
     DepthSync,
     SyncError,
     coarse_offset_search,
@@ -62,6 +65,7 @@ WRONG_S = 5.0  # an answer further off than this is wrong (the issue's measure)
 OFFSETS_S = (29.91, 289.8, 3 * 3600.0 + 17.3, -9 * 3600.0 - 41.6)
 DRIFTS_PPM = (0.0, 50.0, -50.0)
 OUT = Path("bench-output")
+FloatArray = npt.NDArray[np.float64]
 
 
 def relative(sim: SyntheticDive) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -81,7 +85,7 @@ NEAR: list[float] = []  # offsets (s from the answer) of near alternatives withi
 Record = tuple[float, bool, float, bool]  # our time error s, refused, the paper's, near warning
 
 
-def near_warning(solution) -> bool:
+def near_warning(solution: ClockSolution) -> bool:
     """True when an offset a few sample intervals away fits almost as well (the stage warns)."""
     a = solution.ambiguity
     if a.near_offset_s is None or not a.near_evidence < AmbiguityLimits().min_evidence:
@@ -90,7 +94,9 @@ def near_warning(solution) -> bool:
     return True
 
 
-def ours(traj_t, traj_z, dive_t, depth) -> DepthSync:
+def ours(
+    traj_t: npt.ArrayLike, traj_z: npt.ArrayLike, dive_t: npt.ArrayLike, depth: npt.ArrayLike
+) -> DepthSync:
     """The stage's search (no clock prior: these relative clocks carry none)."""
     solution = solve_clock_offset(traj_t, traj_z, [(dive_t, depth)], max_offset_s=15 * 3600.0)
     EVIDENCE.append(solution.ambiguity.evidence)
@@ -100,7 +106,9 @@ def ours(traj_t, traj_z, dive_t, depth) -> DepthSync:
     return solution.sync
 
 
-def _old_candidates(traj_t, traj_z, dive_t, depth) -> list[float]:
+def _old_candidates(
+    traj_t: npt.ArrayLike, traj_z: npt.ArrayLike, dive_t: npt.ArrayLike, depth: npt.ArrayLike
+) -> list[float]:
     """The coarse candidates of then: raw z and depths, the 5 best grid offsets 10 s apart."""
     coarse = coarse_offset_search(
         traj_t, traj_z, dive_t, depth, max_offset_s=15 * 3600.0, smooth_s=0.0, despike_depth=False
@@ -114,7 +122,12 @@ def _old_candidates(traj_t, traj_z, dive_t, depth) -> list[float]:
     return picked
 
 
-def old_rule(traj_t, traj_z, dives, min_depth_range_m) -> DepthSync | None:
+def old_rule(
+    traj_t: npt.ArrayLike,
+    traj_z: npt.ArrayLike,
+    dives: Sequence[tuple[npt.ArrayLike, npt.ArrayLike]],
+    min_depth_range_m: float,
+) -> DepthSync | None:
     """The selection before ambiguity was measured: least robust scale over every candidate."""
     best = None
     for dive_t, depth in dives:
@@ -370,7 +383,15 @@ def part_fusion(seeds: int) -> None:
         print(f"figure: {path}")
 
 
-def plot_fusion(sim, traj_t, world, fused, sync, dive_t, depth) -> Path:
+def plot_fusion(
+    sim: SyntheticDive,
+    traj_t: FloatArray,
+    world: FloatArray,
+    fused: FloatArray,
+    sync: DepthSync,
+    dive_t: FloatArray,
+    depth: FloatArray,
+) -> Path:
     from matplotlib.figure import Figure
 
     OUT.mkdir(exist_ok=True)
@@ -530,7 +551,8 @@ def part_short_dives(seeds: int) -> None:
         "prior": 0,
         "near": 0,
     }
-    right_evidence, wrong_evidence = [], []
+    right_evidence: list[float] = []
+    wrong_evidence: list[float] = []
     n = 0
     for seed in range(1, seeds + 1):
         sim = SurveySimulator(SurveyOptions(sessions=2, duration_s=60.0, seed=seed, video=False))
@@ -545,7 +567,9 @@ def part_short_dives(seeds: int) -> None:
             reference_ns = int(camera_ns[0])
             traj_t = seconds_from_ns(camera_ns - reference_ns)
             true_offset = seconds_from_ns(truth.dive_clock.apply(int(true_ns[0])) - reference_ns)
-            dives = [(p.stamps_s - seconds_from_ns(reference_ns), p.depth_m) for p in profiles]
+            dives: list[tuple[npt.ArrayLike, npt.ArrayLike]] = [
+                (p.stamps_s - seconds_from_ns(reference_ns), p.depth_m) for p in profiles
+            ]
             n += 1
             old = old_rule(traj_t, z, dives, 0.5)
             if old is None:

@@ -238,11 +238,11 @@ def clock_step(row: Row, rng: random.Random, work: Path, sim: dict[str, Any]) ->
         now = real()
         return now + (step_ns if now - start > at_ns else 0)
 
-    time.time_ns = wall_ns  # type: ignore[assignment]
+    time.time_ns = wall_ns
     try:
         report = _in_process_recording(sim, work / f"step{row.trials}", {}, 3.0)
     finally:
-        time.time_ns = real  # type: ignore[assignment]
+        time.time_ns = real
     (path,) = report.files
     logs = np.array([r.log_time_ns for r in iter_records_salvage(path)], dtype=np.int64)
     backwards = int(np.count_nonzero(np.diff(logs) < 0))

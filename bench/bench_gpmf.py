@@ -48,15 +48,15 @@ class Hole(bytes):
 
 class Holes(Sequence[bytes]):
     def __init__(self, count: int, size: int) -> None:
-        self.count, self.packet = count, Hole(size)
+        self.length, self.packet = count, Hole(size)
 
     def __len__(self) -> int:
-        return self.count
+        return self.length
 
     def __getitem__(self, index):  # type: ignore[no-untyped-def]
         if isinstance(index, slice):
-            return [self.packet] * len(range(*index.indices(self.count)))
-        if not -self.count <= index < self.count:
+            return [self.packet] * len(range(*index.indices(self.length)))
+        if not -self.length <= index < self.length:
             raise IndexError(index)
         return self.packet
 
@@ -109,7 +109,7 @@ def write_synthetic(path: Path, payloads: list[bytes], video_bytes: int) -> Path
     packets: Sequence[bytes] = Holes(frames, packet) if sparse else [b"\0" * packet] * frames
     original: Callable[..., None] = writer._write_all
     if sparse:
-        writer._write_all = _sparse_write_all  # type: ignore[assignment]
+        writer._write_all = _sparse_write_all
     try:
         writer.write_gopro_mp4(
             path,
@@ -124,7 +124,7 @@ def write_synthetic(path: Path, payloads: list[bytes], video_bytes: int) -> Path
             creation_time=datetime(2026, 1, 1, tzinfo=UTC),
         )
     finally:
-        writer._write_all = original  # type: ignore[assignment]
+        writer._write_all = original
     return path
 
 

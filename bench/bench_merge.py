@@ -183,7 +183,7 @@ def bench_photos() -> None:
             continue
         for subpix in (False, True):
             start = time.perf_counter()
-            detections = detect_tags(image, DetectionOptions(subpix=subpix))
+            detections = detect_tags(np.asarray(image, np.uint8), DetectionOptions(subpix=subpix))
             elapsed = time.perf_counter() - start
             lines = line_fit_residuals_px(detections, grid)
             homography = homography_residuals_px(detections, grid)
@@ -290,7 +290,7 @@ def make_fieldsim_survey(
             outlier_flags.append(outlier)
             kept_index.append(i)
             rgb = sim.render_frame(k, int(stamp)).image_rgb
-            images.append(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+            images.append(np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), np.uint8))
             kept_stamps.append(int(stamp))
         folders.append(
             write_slam_folder(
@@ -309,6 +309,7 @@ def make_fieldsim_survey(
             session_from_cam_true=np.array(true_poses),
             session_from_cam_drift=np.array(drift_poses),
             outlier=np.array(outlier_flags, dtype=bool),
+            allow_pickle=True,  # numpy's default, named so that mypy maps the masks to **kwds
             **{f"seen_{name}": mask[kept_index] for name, mask in seen_by.items()},
         )
         outlier_stamps[f"dive{k + 1}"] = [

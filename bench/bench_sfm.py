@@ -71,7 +71,7 @@ def load() -> str:
 
 def ate_row(estimate: Trajectory, truth: Trajectory) -> str:
     return "  ".join(
-        f"{align} {ate(estimate, truth, align=align).rmse_m * 100:6.2f} cm"  # type: ignore[arg-type]
+        f"{align} {ate(estimate, truth, align=align).rmse_m * 100:6.2f} cm"
         for align in ("none", "se3", "sim3")
     )
 
@@ -191,7 +191,9 @@ def _match_list(database: Path, pairs: list[tuple[str, str]], path: Path, thread
     return time.perf_counter() - start
 
 
-def incremental(database: Path, images: Path, work: Path, threads: int) -> tuple[float, dict]:
+def incremental(
+    database: Path, images: Path, work: Path, threads: int
+) -> tuple[float, dict[str, np.ndarray]]:
     """pycolmap's incremental mapper without priors (camera held fixed); seconds, T_W_C."""
     import pycolmap
 
@@ -220,7 +222,9 @@ def incremental(database: Path, images: Path, work: Path, threads: int) -> tuple
     return seconds, poses
 
 
-def baseline_ate(poses: dict, sessions: list[SlamLikeSession], label: str) -> list[float]:
+def baseline_ate(
+    poses: dict[str, np.ndarray], sessions: list[SlamLikeSession], label: str
+) -> list[float]:
     out = []
     for s in sessions:
         names = [f"{s.folder.name}/{t}.png" for t in s.estimate.stamps_ns.tolist()]

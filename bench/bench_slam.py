@@ -52,6 +52,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -262,8 +263,8 @@ def rendered(
             estimate = read_tum(SlamFolder(out).trajectory)
             # Ground truth is on the IMU clock; the trajectory on the camera clock.
             estimate = Trajectory(estimate.stamps_ns + shift_ns, estimate.poses)
-            align = "se3" if use_imu else "sim3"
-            error = ate(estimate, data.groundtruth, align=align, max_dt_ns=3_000_000)
+            align: Literal["se3", "sim3"] = "se3" if use_imu else "sim3"
+            result = ate(estimate, data.groundtruth, align=align, max_dt_ns=3_000_000)
             sim3 = ate(estimate, data.groundtruth, align="sim3", max_dt_ns=3_000_000)
             truth = data.groundtruth.slice_time(
                 int(estimate.stamps_ns[0]), int(estimate.stamps_ns[-1])
@@ -273,7 +274,7 @@ def rendered(
                 _row(
                     name,
                     truth.path_length_m(),
-                    error.rmse_m,
+                    result.rmse_m,
                     sim3.scale,
                     stats["keyframes"],
                     stats["loop_closures"],
@@ -281,7 +282,7 @@ def rendered(
                 )
             )
             print(
-                f"{'':<28} max error {np.max(error.errors_m) * 1000:.1f} mm, "
+                f"{'':<28} max error {np.max(result.errors_m) * 1000:.1f} mm, "
                 f"tracking failures {stats.get('tracking_failures')}, init {stats.get('init')}, "
                 f"RTF per CPU second {stats.get('real_time_factor_cpu', float('nan')):.2f} "
                 f"(load average {stats.get('load_average_1min')})"
@@ -521,8 +522,8 @@ def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict
         leica = _leica(recording.leica).slice_time(
             int(trajectory.stamps_ns[0]), int(trajectory.stamps_ns[-1])
         )
-        ours = trajectory.interpolate(leica.stamps_ns)
-        result = ate(ours, leica, align="sim3", max_dt_ns=1000)
+        at_leica = trajectory.interpolate(leica.stamps_ns)
+        result = ate(at_leica, leica, align="sim3", max_dt_ns=1000)
         row["leica_ate_m"] = result.rmse_m
         row["leica_ate_pct"] = 100.0 * result.rmse_m / leica.path_length_m()
         row["leica_path_m"] = leica.path_length_m()

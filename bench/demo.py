@@ -31,6 +31,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
@@ -190,7 +191,7 @@ def summary(project_path: Path, steps: dict[str, tuple[int, float]]) -> tuple[st
     from postproc.pipeline.stages import RunFolders
 
     project = load_project(project_path)
-    evaluation: dict = {}
+    evaluation: dict[str, Any] = {}
     evaluation_path = project.output / "evaluation.json"
     if evaluation_path.is_file():
         evaluation = json.loads(evaluation_path.read_text(encoding="utf-8"))
@@ -206,8 +207,8 @@ def summary(project_path: Path, steps: dict[str, tuple[int, float]]) -> tuple[st
             stamp = json.loads((task.out / STAMP_NAME).read_text(encoding="utf-8"))
         status = "done" if stamp else "failed/not run"
         ok = ok and stamp is not None
-        seconds = f"{stamp['seconds']:.1f}" if stamp else "-"
-        rows.append((task.stage, task.session or "-", status, seconds, _error(task, evaluation)))
+        took = f"{stamp['seconds']:.1f}" if stamp else "-"
+        rows.append((task.stage, task.session or "-", status, took, _error(task, evaluation)))
     width = [max(len(r[i]) for r in rows) for i in range(5)]
     text = "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width, strict=True)) for r in rows)
     text += f"\nreport: {project.output / 'report.html'}"
@@ -216,7 +217,7 @@ def summary(project_path: Path, steps: dict[str, tuple[int, float]]) -> tuple[st
     return text, ok
 
 
-def _error(task, evaluation: dict) -> str:  # type: ignore[no-untyped-def]
+def _error(task: Any, evaluation: dict[str, Any]) -> str:
     session = evaluation.get("sessions", {}).get(task.session or "", {})
     if task.stage == "slam" and "slam_ate_m" in session:
         return f"ATE {session['slam_ate_m']:.3f} m"

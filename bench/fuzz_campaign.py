@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -99,8 +100,10 @@ def regression_count(name: str) -> int:
     return sum(1 for p in folder.iterdir() if p.is_file()) if folder.is_dir() else 0
 
 
-def campaign(names: list[str], inputs: int, first_seed: int, save: bool) -> dict[str, dict]:
-    results: dict[str, dict] = {}
+def campaign(
+    names: list[str], inputs: int, first_seed: int, save: bool
+) -> dict[str, dict[str, Any]]:
+    results: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
             target = TARGETS[name]
@@ -134,7 +137,7 @@ def campaign(names: list[str], inputs: int, first_seed: int, save: bool) -> dict
     return results
 
 
-def table(results: dict[str, dict]) -> str:
+def table(results: dict[str, dict[str, Any]]) -> str:
     lines = [
         "| parser | inputs tried | rejected with a clear error | failures now | "
         "regression cases | bugs found and fixed |",
@@ -150,7 +153,7 @@ def table(results: dict[str, dict]) -> str:
 
 
 def run_atheris(name: str) -> None:  # pragma: no cover - optional tool
-    import atheris  # type: ignore[import-not-found]
+    import atheris  # type: ignore[import-not-found, import-untyped, unused-ignore]
 
     target = TARGETS[name]
     work = Path(tempfile.mkdtemp())
