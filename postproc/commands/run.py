@@ -15,6 +15,7 @@ examples:
   wreckmap-post run project.yaml --workers 2                  # local process pool
   wreckmap-post run project.yaml --scheduler tcp://lab1:8786  # Dask distributed
   wreckmap-post run project.yaml --scheduler slurm --workers 4
+  wreckmap-post run project.yaml --quick      # between dives: path, depth, coverage
 
 Runs import (GoPro files), slam, depth, merge, sfm and dense for every session of
 the project (deploy/project.example.yaml documents every key), skipping stages whose
@@ -46,6 +47,19 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     parser.add_argument("--force", action="store_true", help="rerun stages even when up to date")
     parser.add_argument("--no-report", action="store_true", help="skip report.html")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="quick look for the boat: calibrate, import, slam at reduced width and depth "
+        "only, into <output>/quick with quick/quick.html (path, depth, sparse map, coverage)",
+    )
+    parser.add_argument(
+        "--quick-width",
+        type=int,
+        default=480,
+        metavar="PX",
+        help="SLAM image width of the quick look (default 480)",
+    )
     parser.set_defaults(handler=_run)
 
     report = subparsers.add_parser(
@@ -64,14 +78,27 @@ def _run(args: argparse.Namespace) -> int:
     from postproc.pipeline.project import load_project
     from postproc.pipeline.report import write_report
     from postproc.pipeline.runner import run_project
+    from shared.errors import InputError
 
     project = load_project(args.project)
+    if args.quick_width < 64:
+        raise InputError(f"--quick-width {args.quick_width}: expected at least 64 px")
     backend = make_backend(args.scheduler, workers=args.workers, cluster=project.cluster)
     try:
-        result = run_project(project, backend=backend, force=args.force, echo=print)
+        if args.quick:
+            from postproc.pipeline.quick import run_quick
+
+            result, page = run_quick(
+                project, backend=backend, width_px=args.quick_width, force=args.force, echo=print
+            )
+        else:
+            result = run_project(project, backend=backend, force=args.force, echo=print)
     finally:
         backend.close()
     print(format_outcomes(result))
+    if args.quick:
+        print(f"quick look: {page}")
+        return int(result.exit_code())
     if not args.no_report:
         print(f"report: {write_report(project, result=result)}")
     return result.exit_code()
