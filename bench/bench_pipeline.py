@@ -27,6 +27,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
@@ -159,6 +160,48 @@ def run_chain(root: Path, sim: Path, *, euroc: bool) -> dict[str, float | str]:
     return per_stage
 
 
+def run_quick_look(root: Path, sim: Path, *, euroc: bool, width_px: int) -> dict[str, Any]:
+    """The quick look (`wreckmap-post run --quick`) on the project of `root` (after its
+    full run, so the import is already there): seconds per stage (summed over
+    sessions), the page's seconds, the SLAM errors against the truth, what the page
+    shows."""
+    from postproc.pipeline.evaluate import evaluate_project
+    from postproc.pipeline.project import load_project
+    from postproc.pipeline.quick import quick_project, run_quick
+
+    project = load_project(project_file(root, sim, euroc=euroc))
+    started = time.monotonic()
+    result, page = run_quick(project, width_px=width_px, force=True, echo=lambda _line: None)
+    total = time.monotonic() - started
+    per_stage: dict[str, float] = {}
+    for outcome in result.outcomes:
+        if outcome.status == "done":
+            per_stage[outcome.stage] = per_stage.get(outcome.stage, 0.0) + outcome.seconds
+    figures: dict[str, Any] = {
+        "stages_s": per_stage,
+        "page_s": total - sum(per_stage.values()),
+        "total_s": total,
+        "ok": result.ok,
+        "page": str(page),
+    }
+    try:
+        errors = evaluate_project(quick_project(project, width_px=width_px))
+        figures["slam_ate_m"] = {
+            name: s.get("slam_ate_m") for name, s in errors.get("sessions", {}).items()
+        }
+        figures["depth_clock_error_s"] = {
+            name: s.get("depth_time_offset_error_s")
+            for name, s in errors.get("sessions", {}).items()
+        }
+    except Exception as error:  # the timing is still worth printing
+        figures["evaluation_error"] = f"{type(error).__name__}: {error}"
+    text = page.read_text(encoding="utf-8")
+    figures["page_images"] = text.count("<img")
+    figures["page_has_viewer"] = "wm-viewer" in text
+    figures["page_mb"] = len(text.encode()) / 1e6
+    return figures
+
+
 def describe(project: object) -> None:
     """Print what drives the SfM and dense time (keyframes, track length, reference views)
     and the errors of the outputs against the simulator's truth."""
@@ -198,6 +241,55 @@ def describe(project: object) -> None:
         )
 
 
+def print_quick(
+    quick: list[dict[str, Any]],
+    results: list[dict[str, float | str]],
+    lengths: list[float],
+    args: argparse.Namespace,
+) -> dict[str, Any]:
+    """The quick look's table: per stage the two lengths, k and the 45-minute projection
+    (the import is the full run's: the quick look shares it)."""
+    print(
+        f"\nquick look (run --quick, SLAM at {args.quick_width} px wide), scaling from "
+        f"{lengths[1]:g} min; import from the full run (shared)"
+    )
+    print(f"{'part':<8} {'seconds':>9} {'short s':>9} {'k':>6} {'45-min dive s':>14}")
+    rows: dict[str, tuple[float, float]] = {}
+    for stage in ("import", "slam", "depth"):
+        if stage == "import":
+            long, short = results[0].get(stage), results[1].get(stage)
+        else:
+            long, short = quick[0]["stages_s"].get(stage), quick[1]["stages_s"].get(stage)
+        if isinstance(long, float):
+            rows[stage] = (long, short if isinstance(short, float) else math.nan)
+    rows["page"] = (float(quick[0]["page_s"]), float(quick[1]["page_s"]))
+    total_45 = 0.0
+    table: dict[str, Any] = {}
+    for part, (long, short) in rows.items():
+        k = math.nan
+        if math.isfinite(short) and short > 0 and long > 0:
+            k = math.log(long / short) / math.log(lengths[0] / lengths[1])
+        at_45 = long * (TARGET_MIN / lengths[0]) ** (k if math.isfinite(k) else 1.0)
+        total_45 += at_45
+        table[part] = {"seconds": long, "short_s": short, "k": k, "at_45_min_s": at_45}
+        k_text = f"{k:.2f}" if math.isfinite(k) else "(1)"
+        print(f"{part:<8} {long:>9.1f} {short:>9.1f} {k_text:>6} {at_45:>14.0f}")
+    print(f"quick look of a 45-minute dive: {total_45 / 60:.1f} min (goal <= 10 min)")
+    for name, ate in (quick[0].get("slam_ate_m") or {}).items():
+        clock = (quick[0].get("depth_clock_error_s") or {}).get(name)
+        clock_text = "-" if clock is None else f"{1000 * clock:.0f} ms"
+        print(f"  quick truth, {name}: slam ATE {100 * (ate or math.nan):.1f} cm, "
+              f"depth clock error {clock_text}")  # fmt: skip
+    if "evaluation_error" in quick[0]:
+        print(f"  quick truth: not evaluated ({quick[0]['evaluation_error']})")
+    print(
+        f"  page: {quick[0]['page_images']} images, 3D viewer "
+        f"{'yes' if quick[0]['page_has_viewer'] else 'no'}, {quick[0]['page_mb']:.1f} MB "
+        f"({quick[0]['page']})"
+    )
+    return {"parts": table, "at_45_min_s": total_45, "runs": quick}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--minutes", type=float, default=10.0, help="filmed minutes per dive")
@@ -214,12 +306,20 @@ def main(argv: list[str] | None = None) -> int:
         help="simulate the second length instead of cutting the first part of the dive",
     )
     parser.add_argument("--out", type=Path, default=REPO / "bench-output" / "pipeline")
+    parser.add_argument(
+        "--quick-width",
+        type=int,
+        default=480,
+        help="also time the quick look (`run --quick`) at this SLAM width on both lengths "
+        "(0: skip it)",
+    )
     args = parser.parse_args(argv)
     os.environ.setdefault("WRECKMAP_PROGRESS", "0")
     os.environ.setdefault("GLOG_minloglevel", "1")  # COLMAP INFO lines off
 
     lengths = [args.minutes, args.minutes * args.scale_fraction]
     results: list[dict[str, float | str]] = []
+    quick: list[dict[str, Any]] = []
     long_root = args.out / f"{lengths[0]:g}min_{args.width}x{args.height}"
     for index, minutes in enumerate(lengths):
         if index == 1 and args.prefix:
@@ -228,6 +328,9 @@ def main(argv: list[str] | None = None) -> int:
             make_prefix(long_root / "sim", root / "sim", minutes=minutes)
             print(f"first {minutes:g} min of the {lengths[0]:g}-min dive (EuRoC, linked)")
             results.append(run_chain(root, root / "sim", euroc=True))
+            if args.quick_width:
+                quick.append(run_quick_look(root, root / "sim", euroc=True,
+                                            width_px=args.quick_width))  # fmt: skip
             continue
         root = args.out / f"{minutes:g}min_{args.width}x{args.height}"
         root.mkdir(parents=True, exist_ok=True)
@@ -237,6 +340,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{sim_s:.0f} s"
         )
         results.append(run_chain(root, root / "sim", euroc=args.euroc))
+        if args.quick_width:
+            quick.append(run_quick_look(root, root / "sim", euroc=args.euroc,
+                                        width_px=args.quick_width))  # fmt: skip
 
     video_h = lengths[0] * args.sessions / 60.0
     print(
@@ -277,6 +383,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"load average now: {os.getloadavg()[0]:.1f} (2-core machine: timings rise with it)")
     missing = [s for s in stages if not isinstance(results[0].get(s, 0.0), float)]
     print("stages not finished or not built: " + (", ".join(missing) or "none"))
+    if quick:
+        figures["quick"] = print_quick(quick, results, lengths, args)
     (args.out / "bench_pipeline.json").write_text(json.dumps(figures, indent=2) + "\n")
     return 0
 
