@@ -284,6 +284,11 @@ class SlamFolder(HandoffFolder):
         stage also looks for one (the pipeline's is `depth`, inside)."""
         return DepthFolder(self.path.parent / "depth")
 
+    def depth_folders(self) -> tuple[DepthFolder, DepthFolder]:
+        """Where this SLAM folder's depth stage may be, in the order to try: inside it
+        (the pipeline's layout) and beside it (the command line's)."""
+        return self.depth, self.depth_beside
+
     def read_stats(self) -> dict[str, Any]:
         return self.read_json(self.stats)
 

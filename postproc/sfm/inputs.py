@@ -212,7 +212,8 @@ def read_merge_transforms(folder: Path) -> dict[str, dict[str, Any]]:
 
 
 def depth_world_from_session(slam_folder: Path) -> FloatArray | None:
-    """`T_W_S` from a depth-stage folder beside the SLAM folder, or None when there is none.
+    """`T_W_S` from the SLAM folder's depth stage (inside it, the pipeline's layout, or
+    beside it, the command line's), or None when there is none.
 
     Fits the rigid transform taking `trajectory.tum` (T_S_B) onto the depth stage's
     `trajectory_world.tum` (T_W_B) over their common stamps.
@@ -221,10 +222,12 @@ def depth_world_from_session(slam_folder: Path) -> FloatArray | None:
     from shared.geometry import make_pose, umeyama
     from shared.trajectory import associate
 
-    world_path = SlamFolder(slam_folder).depth_beside.trajectory_world
-    body_path = SlamFolder(slam_folder).trajectory
-    if not (world_path.is_file() and body_path.is_file()):
+    slam = SlamFolder(slam_folder)
+    body_path = slam.trajectory
+    found = [d.trajectory_world for d in slam.depth_folders() if d.trajectory_world.is_file()]
+    if not (found and body_path.is_file()):
         return None
+    world_path = found[0]
     world = read_tum(world_path)
     body = read_tum(body_path)
     i, j = associate(body.stamps_ns, world.stamps_ns, max_dt_ns=1_000_000)

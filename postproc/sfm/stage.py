@@ -56,7 +56,7 @@ from postproc.sfm.pairs import PairOptions, select_pairs
 from postproc.sfm.refine import RefineOptions, RefineResult, refine
 from shared.calibration.cameras import CameraModel
 from shared.errors import InputError, StageError
-from shared.folders import MergeFolder, SfmFolder, rebuild, result_stamp
+from shared.folders import MergeFolder, SfmFolder, SlamFolder, rebuild, result_stamp
 from shared.fsutil import atomic_path, write_text_atomic
 from shared.geometry import invert_pose
 from shared.progress import MapFn
@@ -307,9 +307,9 @@ def run(
             f"{len(keyframes)} keyframes in all inputs (expected at least 3 to build a model)"
         )
     timings = {"read_inputs_s": time.perf_counter() - start_all}
-    # A depth stage beside a SLAM folder (the command line's layout) is an input too.
-    beside = [d.parent / "depth" for d in dirs if (d.parent / "depth").is_dir()]
-    stamp = result_stamp("sfm", options, inputs=dirs, depth_beside=beside)
+    # A SLAM folder's depth stage (inside it or beside it) is an input too.
+    depths = [f.path for d in dirs for f in SlamFolder(d).depth_folders() if f.path.is_dir()]
+    stamp = result_stamp("sfm", options, inputs=dirs, depth=depths)
     with rebuild(folder, stamp, overwrite=overwrite, resumable=True) as work:
         if work is not None:
             _build(options, sessions, keyframes, cameras, work, map_fn, timings, start_all)

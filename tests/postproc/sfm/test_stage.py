@@ -258,6 +258,23 @@ def test_depth_folder_beside_the_slam_folder_sets_the_world(
         read_inputs([folder])
 
 
+def test_depth_folder_inside_the_slam_folder_sets_the_world(
+    slam_survey: list[SlamLikeSession], tmp_path: Path
+) -> None:
+    """The pipeline's layout (`sessions/<s>/depth/`): SfM without a merge finds it too."""
+    from shared.formats.tum import write_tum
+    from shared.geometry import make_pose, so3_exp
+
+    folder = copy_session(slam_survey[0], tmp_path / "sessions" / "s1")
+    body = slam_survey[0].estimate
+    write_tum(folder / "trajectory.tum", body)
+    world_from_session = make_pose(so3_exp([0.0, 0.0, -0.2]), [0.5, -1.0, -8.0])
+    write_tum(folder / "depth" / "trajectory_world.tum", body.transformed(world_from_session))
+    sessions = read_inputs([folder])
+    assert sessions[0].source == "depth"
+    np.testing.assert_allclose(sessions[0].world_from_session, world_from_session, atol=1e-9)
+
+
 def test_merge_keyframes_are_used_and_checked(
     slam_survey: list[SlamLikeSession], tmp_path: Path
 ) -> None:
