@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml package.json package-lock.json deploy/setup.sh deploy/s
 
 lint: setup
 	$(BIN)/ruff check .
-	$(BIN)/ruff format --check shared field sim bench
+	$(BIN)/ruff format --check .
 	$(BIN)/mypy
 
 test: lint
