@@ -167,7 +167,7 @@ def run_quick_look(root: Path, sim: Path, *, euroc: bool, width_px: int) -> dict
     shows."""
     from postproc.pipeline.evaluate import evaluate_project
     from postproc.pipeline.project import load_project
-    from postproc.pipeline.quick import quick_project, run_quick
+    from postproc.pipeline.quick import quick_project, quick_stages, run_quick
 
     project = load_project(project_file(root, sim, euroc=euroc))
     started = time.monotonic()
@@ -185,7 +185,9 @@ def run_quick_look(root: Path, sim: Path, *, euroc: bool, width_px: int) -> dict
         "page": str(page),
     }
     try:
-        errors = evaluate_project(quick_project(project, width_px=width_px))
+        errors = evaluate_project(
+            quick_project(project, width_px=width_px), stages=quick_stages(project)
+        )
         figures["slam_ate_m"] = {
             name: s.get("slam_ate_m") for name, s in errors.get("sessions", {}).items()
         }

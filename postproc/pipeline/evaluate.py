@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -117,7 +118,13 @@ def _rigid(source: FloatArray, target: FloatArray) -> tuple[FloatArray, FloatArr
     return T, np.linalg.norm(moved - target, axis=1)
 
 
-def camera_to_true_ns(project: Any, session: Any, entry: dict[str, Any], shift_ns: int) -> int:
+def camera_to_true_ns(
+    project: Any,
+    session: Any,
+    entry: dict[str, Any],
+    shift_ns: int,
+    stages: Mapping[str, Any] | None = None,
+) -> int:
     """What to add to a session's camera stamps to get true time (ns).
 
     EuRoC folders of the simulator are stamped on the camera clock (true = cam + shift).
@@ -131,7 +138,7 @@ def camera_to_true_ns(project: Any, session: Any, entry: dict[str, Any], shift_n
 
     from postproc.pipeline.stages import RunFolders
 
-    path = RunFolders(project.output).imported(session.name).session_yaml
+    path = RunFolders(project.output, stages).imported(session.name).session_yaml
     try:
         document = yaml.safe_load(path.read_text(encoding="utf-8"))
         creation_ns = int(document["clocks"]["gopro"]["creation_time_ns"])
@@ -146,8 +153,10 @@ def _rms(values: FloatArray) -> float:
     return float(np.sqrt(np.mean(values * values))) if values.size else float("nan")
 
 
-def evaluate_project(project: Any) -> dict[str, Any]:
-    """Every error measurable from the finished outputs of `project` (a dict for JSON)."""
+def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Every error measurable from the finished outputs of `project` (a dict for JSON);
+    stages: the registry the run used (default `STAGES`; the quick look's places its
+    imports in the full run's folder)."""
     from postproc.pipeline.stages import RunFolders
     from shared.formats.tum import read_tum
     from shared.geometry import invert_pose
@@ -158,7 +167,7 @@ def evaluate_project(project: Any) -> dict[str, Any]:
     shift_ns = round(float(truth["camera"]["timeshift_cam_imu_s"]) * 1e9)
     cam_from_imu = np.asarray(truth["camera"]["cam_from_imu"], dtype=np.float64)
     imu_from_cam = invert_pose(cam_from_imu)
-    folders = RunFolders(project.output)
+    folders = RunFolders(project.output, stages)
     result: dict[str, Any] = {"truth": str(project.truth), "sessions": {}}
     cam_truth: dict[str, tuple[npt.NDArray[np.int64], Any]] = {}
     for index, session in enumerate(project.sessions):
@@ -169,7 +178,7 @@ def evaluate_project(project: Any) -> dict[str, Any]:
         entry = truth["sessions"][k]
         body = _truth_body(project.truth, entry)
         try:
-            to_true_ns = camera_to_true_ns(project, session, entry, shift_ns)
+            to_true_ns = camera_to_true_ns(project, session, entry, shift_ns, stages)
         except InputError as error:
             result["sessions"][session.name] = {"note": str(error)}
             continue

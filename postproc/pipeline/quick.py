@@ -4,8 +4,9 @@ Between two dives there is about an hour on the surface; the full run of a long 
 does not fit, but what the divers need to plan the next dive does: where the camera
 went, at what depth, the sparse structure it saw, and which parts of it were seen
 badly or not at all. The quick look runs the session stages that give that
-(calibrate, import, slam, depth) with SLAM at a reduced image width, then draws one
-page from their folders.
+(calibrate, import, slam, depth) with a lighter SLAM (half the width, 10 images a
+second, a keyframe a second, no final batch: `quick_project`), then draws one page
+from their folders.
 
 Layout, inside the project's output folder::
 
@@ -55,16 +56,27 @@ QUICK_STAGES = ("calibrate", "import", "slam", "depth")
 SHARED_STAGES = ("calibrate", "import")
 QUICK_FOLDER = "quick"
 QUICK_WIDTH_PX = 480
+# The quick look's SLAM, besides the width: images at most this rate, a keyframe at
+# least this often (the full run: 0.5 s), no final batch adjustment of the window.
+QUICK_RATE_HZ = 10.0
+QUICK_KEYFRAME_INTERVAL_S = 1.0
 QUICK_PAGE = "quick.html"
 
 
 def quick_project(project: Project, *, width_px: int = QUICK_WIDTH_PX) -> Project:
-    """`project` for the quick look: output in `<output>/quick`, SLAM frontend images
-    shrunk to `width_px` (never enlarged beyond the project's own setting)."""
+    """`project` for the quick look: output in `<output>/quick`; SLAM with frontend
+    images shrunk to `width_px`, at most `QUICK_RATE_HZ` images a second, a keyframe at
+    least every `QUICK_KEYFRAME_INTERVAL_S` and no final batch (never more work than
+    the project's own settings ask)."""
     stage_options = dict(project.stage_options)
     slam = copy.deepcopy(project.options_for("slam"))
     current = int(slam.frontend.width_px)
     slam.frontend.width_px = width_px if current <= 0 else min(width_px, current)
+    rate = slam.max_rate_hz
+    slam.max_rate_hz = QUICK_RATE_HZ if rate is None else min(rate, QUICK_RATE_HZ)
+    keyframes = slam.estimator.keyframes
+    keyframes.max_interval_s = max(keyframes.max_interval_s, QUICK_KEYFRAME_INTERVAL_S)
+    slam.estimator.backend.final_batch = False
     stage_options["slam"] = slam
     return dataclasses.replace(
         project, output=project.output / QUICK_FOLDER, stage_options=stage_options
@@ -310,12 +322,14 @@ def build_quick_page(quick: Project, *, result: Any = None) -> str:
 
     out = quick.output
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    slam = quick.options_for("slam")
     body = [
         f"<h1>{html.escape(quick.name)}: quick look</h1>",
         f"<p class='small'>output {html.escape(str(out))}; {now}. SLAM at "
-        f"{quick.options_for('slam').frontend.width_px} px wide, depth from the dive "
-        "computer, coverage from the SLAM landmarks; no merge, SfM or mesh (the full "
-        "`wreckmap-post run` gives those).</p>",
+        f"{slam.frontend.width_px} px wide, at most {slam.max_rate_hz:g} images a second, "
+        f"a keyframe at least every {slam.estimator.keyframes.max_interval_s:g} s; depth "
+        "from the dive computer, coverage from the SLAM landmarks; no merge, SfM or mesh "
+        "(the full `wreckmap-post run` gives those).</p>",
         "<h2>Stage runs</h2>",
         _status_rows(quick, result),
     ]

@@ -334,6 +334,10 @@ class SlamOptions:
         (postproc.slam.visual_only): arbitrary scale, S = first keyframe's body frame
         (not gravity-aligned), no loop closure.
     max_frames: stop after this many images (None: all); for quick looks and tests.
+    max_rate_hz: use at most this many images per second of the recording (the others
+        are decoded, for the video's sake, and dropped); None: every image. For the quick
+        look (`wreckmap-post run --quick`): at 10 Hz a 30 fps dive costs a third of the
+        tracking and keyframe checks.
     min_tracks_ok: a frame with fewer tracked features counts as a tracking failure.
     max_speed_m_s: a keyframe-to-keyframe speed above this (m/s) means the estimate has
         diverged (too few landmarks to hold the IMU integration: scenes beyond
@@ -357,6 +361,7 @@ class SlamOptions:
     estimator: EstimatorOptions = field(default_factory=EstimatorOptions)
     use_imu: bool = True
     max_frames: int | None = None
+    max_rate_hz: float | None = None
     min_tracks_ok: int = 30
     max_speed_m_s: float | None = 10.0
     gyro_check: Literal["auto", "on", "off"] = "auto"

@@ -14,7 +14,7 @@ import pytest
 
 from postproc.slam.frontend import FrontendOptions
 from postproc.slam.inputs import open_input
-from postproc.slam.stage import SlamOptions, run
+from postproc.slam.stage import SlamOptions, min_frame_step_ns, run
 from shared.calibration.kalibr import read_camchain, read_imu_yaml, write_camchain, write_imu_yaml
 from shared.errors import InputError, OutputExistsError, StageError
 from shared.formats.euroc import read_euroc
@@ -101,6 +101,37 @@ def test_existing_result_is_kept_unless_overwrite(wall_euroc: Path, tmp_path: Pa
         run(options, wall_euroc, out)
     run(options, wall_euroc, out, overwrite=True)
     assert (out / "stats.json").is_file()
+
+
+def test_frame_step_keeps_every_third_image_of_a_jittery_30_fps_stream() -> None:
+    rng = np.random.default_rng(4)
+    stamps = np.arange(300) * 33_333_333 + rng.integers(-2_000_000, 2_000_000, 300)
+    step = min_frame_step_ns(10.0)
+    kept = [int(stamps[0])]
+    for stamp in stamps[1:]:
+        if stamp - kept[-1] >= step:
+            kept.append(int(stamp))
+    assert len(kept) == 100
+    assert min_frame_step_ns(None) == 0
+    with pytest.raises(InputError, match="max_rate_hz 0: expected a positive rate"):
+        min_frame_step_ns(0)
+
+
+def test_max_rate_uses_part_of_the_images_and_stays_accurate(
+    wall_euroc: Path, tmp_path: Path
+) -> None:
+    options = SlamOptions(frontend=FrontendOptions(width_px=0), max_rate_hz=5.0)
+    out = run(options, wall_euroc, tmp_path / "slam")
+    trajectory = read_tum(out / "trajectory.tum")
+    truth = read_euroc(wall_euroc)
+    # 10 fps recorded, 5 used: every other image, each on its own stamp.
+    assert len(trajectory) == pytest.approx(len(truth.image_stamps_ns) / 2, abs=2)
+    assert set(trajectory.stamps_ns.tolist()) <= set(truth.image_stamps_ns.tolist())
+    assert truth.groundtruth is not None
+    assert ate(trajectory, truth.groundtruth, align="se3").rmse_m < 0.05
+    with pytest.raises(InputError, match="max_rate_hz -1"):
+        run(SlamOptions(max_rate_hz=-1.0), wall_euroc, tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
 
 
 def test_errors(wall_euroc: Path, tmp_path: Path) -> None:
