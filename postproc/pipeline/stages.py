@@ -24,6 +24,8 @@ post-processing side never imports the field package.
 
 from __future__ import annotations
 
+import functools
+import importlib
 import logging
 import shutil
 import subprocess
@@ -139,44 +141,21 @@ class ImportOptions:
     compression: Literal["none", "zstd", "lz4"] = "none"
 
 
-def _calibrate_options() -> type:
-    from postproc.calibrate.stage import CalibrateOptions
+def options_class(module: str, name: str) -> Callable[[], type]:
+    """A stage's `options_type`: imports `module` only when asked (the light options
+    modules of slam, dense and calibrate; the stage module of the others)."""
+    return functools.partial(_import_class, module, name)
 
-    return CalibrateOptions
+
+def _import_class(module: str, name: str) -> type:
+    found = getattr(importlib.import_module(module), name)
+    if not isinstance(found, type):
+        raise TypeError(f"{module}.{name} is not a class")
+    return found
 
 
 def _import_options() -> type:
     return ImportOptions
-
-
-def _slam_options() -> type:
-    from postproc.slam.stage import SlamOptions
-
-    return SlamOptions
-
-
-def _depth_options() -> type:
-    from postproc.depth.stage import DepthOptions
-
-    return DepthOptions
-
-
-def _merge_options() -> type:
-    from postproc.merge.stage import MergeOptions
-
-    return MergeOptions
-
-
-def _sfm_options() -> type:
-    from postproc.sfm.stage import SfmOptions
-
-    return SfmOptions
-
-
-def _dense_options() -> type:
-    from postproc.dense.stage import DenseOptions
-
-    return DenseOptions
 
 
 # ------------------------------------------------------------------------------ run functions
@@ -387,7 +366,7 @@ def _depth_place(output: Path, session: str | None) -> Path:
 _ENTRIES = (
     Stage(
         name="calibrate",
-        options_type=_calibrate_options,
+        options_type=options_class("postproc.calibrate.options", "CalibrateOptions"),
         run=run_calibrate,
         writes=CalibrationFolder,
         place=_in_output("calibration"),
@@ -406,7 +385,7 @@ _ENTRIES = (
     ),
     Stage(
         name="slam",
-        options_type=_slam_options,
+        options_type=options_class("postproc.slam.options", "SlamOptions"),
         run=run_slam,
         writes=SlamFolder,
         reads=(
@@ -420,7 +399,7 @@ _ENTRIES = (
     ),
     Stage(
         name="depth",
-        options_type=_depth_options,
+        options_type=options_class("postproc.depth.stage", "DepthOptions"),
         run=run_depth,
         writes=DepthFolder,
         reads=(Read(kind=SlamFolder, name="slam"),),
@@ -431,7 +410,7 @@ _ENTRIES = (
     ),
     Stage(
         name="merge",
-        options_type=_merge_options,
+        options_type=options_class("postproc.merge.stage", "MergeOptions"),
         run=run_merge,
         writes=MergeFolder,
         reads=(
@@ -444,7 +423,7 @@ _ENTRIES = (
     ),
     Stage(
         name="sfm",
-        options_type=_sfm_options,
+        options_type=options_class("postproc.sfm.stage", "SfmOptions"),
         run=run_sfm,
         writes=SfmFolder,
         reads=(
@@ -458,7 +437,7 @@ _ENTRIES = (
     ),
     Stage(
         name="dense",
-        options_type=_dense_options,
+        options_type=options_class("postproc.dense.options", "DenseOptions"),
         run=run_dense,
         writes=DenseFolder,
         reads=(Read(kind=SfmFolder, name="sfm"),),
