@@ -435,7 +435,7 @@ F = TypeVar("F", bound=HandoffFolder)
 
 def jsonable(value: Any) -> Any:
     """Options as JSON: dataclasses as mappings, Paths as strings, tuples as lists,
-    anything else by repr."""
+    NumPy scalars as Python numbers, anything else by repr."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return jsonable(dataclasses.asdict(value))
     if isinstance(value, dict):
@@ -446,6 +446,9 @@ def jsonable(value: Any) -> Any:
         return str(value)
     if value is None or isinstance(value, bool | int | float | str):
         return value
+    item = getattr(value, "item", None)
+    if callable(item) and getattr(value, "shape", None) == ():  # a NumPy scalar
+        return jsonable(item())
     return repr(value)
 
 

@@ -46,7 +46,7 @@ from postproc.dense.colmap_io import DenseWorkspace, PinholeView, read_array, wr
 from postproc.dense.options import DenseOptions as DenseOptions
 from postproc.dense.stereo_cpu import CpuStereoOptions
 from shared.errors import InputError, StageError
-from shared.folders import DenseFolder, SfmFolder, SlamFolder, rebuild, result_stamp
+from shared.folders import DenseFolder, SfmFolder, SlamFolder, jsonable, rebuild, result_stamp
 from shared.progress import MapFn, serial_map
 
 log = logging.getLogger(__name__)
@@ -443,7 +443,7 @@ def _build(
         "model_dir": str(model_dir),
         "image_dir": str(image_dir),
         "backend": backend_name,
-        "options": _jsonable(asdict(options)),
+        "options": jsonable(options),
     }
 
     start = time.perf_counter()
@@ -487,7 +487,7 @@ def _build(
         start = time.perf_counter()
         if not corrected_ply.exists():
             water = correct_fused(options.colour, fused_ply, views, corrected_ply)
-            report["colour"] = _jsonable(asdict(water))
+            report["colour"] = jsonable(water)
         timings["colour_s"] = time.perf_counter() - start
         mesh_input = corrected_ply
 
@@ -544,18 +544,6 @@ def supported_points(fused_ply: Path, visibility: Path, out_ply: Path, *, min_im
         colors=None if cloud.colors is None else cloud.colors[keep],
     )
     return write_ply(out_ply, kept, overwrite=True)
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    return value
 
 
 def read_depth_map(workspace_dir: Path, image_name: str) -> npt.NDArray[np.float32]:
