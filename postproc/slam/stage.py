@@ -241,6 +241,11 @@ def _build(
 ) -> None:
     """The SLAM run itself, written into the empty folder `folder`."""
     min_frame_step_ns(options.max_rate_hz)  # a bad rate is refused before any work
+    if options.max_speed_m_s is not None and not options.max_speed_m_s > 0:
+        raise InputError(
+            f"max_speed_m_s {options.max_speed_m_s:g}: expected a positive speed (m/s), "
+            "or none (--max-speed 0) to turn the check off"
+        )
     source = open_input(input_path)
     if options.use_imu and len(source.imu) < 2:
         raise InputError(

@@ -131,6 +131,8 @@ def test_max_rate_uses_part_of_the_images_and_stays_accurate(
     assert ate(trajectory, truth.groundtruth, align="se3").rmse_m < 0.05
     with pytest.raises(InputError, match="max_rate_hz -1"):
         run(SlamOptions(max_rate_hz=-1.0), wall_euroc, tmp_path / "bad")
+    with pytest.raises(InputError, match="max_speed_m_s -2: expected a positive speed"):
+        run(SlamOptions(max_speed_m_s=-2.0), wall_euroc, tmp_path / "bad")
     assert not (tmp_path / "bad").exists()
 
 
