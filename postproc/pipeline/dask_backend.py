@@ -115,11 +115,26 @@ class DaskBackend:
             self.cluster.close()
 
 
+def slurm_cluster_class() -> Any:
+    """dask-jobqueue's SLURMCluster, imported without letting the import take Ctrl-C:
+    importing dask_jobqueue installs its own SIGINT handler, which would stop
+    `wreckmap-post run` from ending its stages cleanly (KeyboardInterrupt, exit 130)."""
+    import signal
+    import threading
+
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        from dask_jobqueue import SLURMCluster
+    finally:
+        if threading.current_thread() is threading.main_thread() and handler is not None:
+            signal.signal(signal.SIGINT, handler)
+    return SLURMCluster
+
+
 def slurm_cluster(spec: ClusterSpec, **scheduler_options: Any) -> Any:
     """A dask-jobqueue SLURMCluster: one worker per job running one stage at a time (one
     thread), the job's cores left to the stage's own threads (COLMAP, OpenCV, numpy)."""
-    from dask_jobqueue import SLURMCluster
-
+    SLURMCluster = slurm_cluster_class()
     return SLURMCluster(
         queue=spec.queue,
         account=spec.account,

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +18,7 @@ from postproc.pipeline.runner import STAMP_NAME, plan, run_project
 from shared.errors import InputError
 from shared.folders import DenseFolder, HandoffFolder
 
-from .conftest import write_project
+from .conftest import REPO, write_project
 
 ALL = ["slam:s1", "depth:s1", "slam:s2", "depth:s2", "merge", "sfm", "dense"]
 
@@ -261,6 +263,22 @@ def test_slurm_job_script_follows_the_cluster_settings() -> None:
     for line in ("#SBATCH -p lab", "#SBATCH -A wreck", "#SBATCH --cpus-per-task=6",
                  "#SBATCH -t 01:30:00", "#SBATCH --gres=gpu:1", "--nthreads 1"):  # fmt: skip
         assert line in script, script
+
+
+def test_importing_dask_jobqueue_leaves_ctrl_c_alone() -> None:
+    # A fresh interpreter: the import's side effect happens once per process.
+    code = (
+        "import signal\n"
+        "from postproc.pipeline.dask_backend import slurm_cluster_class\n"
+        "before = signal.getsignal(signal.SIGINT)\n"
+        "slurm_cluster_class()\n"
+        "import sys\n"
+        "assert 'dask_jobqueue' in sys.modules\n"
+        "assert signal.getsignal(signal.SIGINT) is before, signal.getsignal(signal.SIGINT)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                          text=True, timeout=120, check=False)  # fmt: skip
+    assert done.returncode == 0, done.stderr
 
 
 def test_calibration_recording_runs_first_and_feeds_import_and_slam(
