@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -164,8 +164,8 @@ def align_6dof(
             )
         pose, covariance = _with_tilt_prior(
             np.array([c[0] for c in candidates]),
-            np.linalg.inv(covariance),
-            [np.linalg.inv(c[1]) for c in candidates],
+            cast(FloatArray, np.linalg.inv(covariance)),
+            [cast(FloatArray, np.linalg.inv(c[1])) for c in candidates],
             pose,
             2.0 * tilt_prior_sigma_rad**2,
             max_iterations,

@@ -107,7 +107,8 @@ def _rotation_medoid(rotations: FloatArray) -> FloatArray:
     # ||R_i - R_j||_F^2 = 6 - 2 trace(R_i^T R_j) and trace(R_i^T R_j) = <R_i, R_j>.
     traces = flat @ flat.T
     index = int(np.argmin(np.sum(6.0 - 2.0 * traces, axis=1)))
-    return rotations[index]
+    medoid: FloatArray = rotations[index]
+    return medoid
 
 
 def _mean_rotation(rotations: FloatArray, weights: FloatArray, method: RotationMean) -> FloatArray:

@@ -29,6 +29,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -125,7 +126,8 @@ def _perturbed(pose: FloatArray, delta: FloatArray) -> FloatArray:
 
 def _edge_residual(e: Edge, poses: dict[str, FloatArray]) -> FloatArray:
     predicted = invert_pose(poses[e.parent]) @ poses[e.child]
-    return pose_residuals(e.parent_from_child[None], predicted)[0]
+    residual: FloatArray = pose_residuals(e.parent_from_child[None], predicted)[0]
+    return residual
 
 
 def _edge_jacobian(
@@ -203,7 +205,7 @@ def solve_joint(
             gradient = np.zeros(size)
             for k, (e, info) in enumerate(zip(used, informations, strict=True)):
                 r = _edge_residual(e, poses)
-                whitened = float(np.sqrt(max(r @ info @ r, 0.0)))
+                whitened = float(np.sqrt(max(float(r @ info @ r), 0.0)))
                 if whitened > reject:
                     weights[k] = 0.0
                     continue
@@ -222,7 +224,7 @@ def solve_joint(
                     gradient[i + 5] -= poses[node][2, 3] / variance
             # Gauss-Newton: H δ = -Jᵀ Σ⁻¹ r (the gradient above carries the sign).
             try:
-                step = np.linalg.solve(hessian, gradient) if size else np.zeros(0)
+                step = cast(FloatArray, np.linalg.solve(hessian, gradient)) if size else np.zeros(0)
             except np.linalg.LinAlgError:
                 if saved is None:
                     raise
@@ -247,7 +249,7 @@ def solve_joint(
                 e,
                 float(np.rad2deg(np.linalg.norm(r[:3]))),
                 float(np.linalg.norm(r[3:])),
-                float(np.sqrt(max(r @ info @ r, 0.0))),
+                float(np.sqrt(max(float(r @ info @ r), 0.0))),
                 float(w),
             )
         )

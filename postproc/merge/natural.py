@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -50,7 +50,8 @@ def session_features(options: PlaceOptions, session: Any) -> list[KeyframeFeatur
         path = session.images.get(int(stamp))
         if path is None:
             continue
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        # IMREAD_GRAYSCALE always decodes to 8-bit.
+        image = cast(npt.NDArray[np.uint8], cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
         if image is None:
             raise InputError(f"{path}: cannot read the keyframe image")
         pixels, descriptors = extract_features(

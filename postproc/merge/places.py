@@ -133,7 +133,7 @@ def extract_features(
     """
     import cv2
 
-    orb = cv2.ORB_create(nfeatures=count, fastThreshold=10, nlevels=levels)
+    orb = cv2.ORB.create(nfeatures=count, fastThreshold=10, nlevels=levels)
     keypoints, descriptors = orb.detectAndCompute(image, None)
     if descriptors is None or not keypoints:
         return np.zeros((0, 2)), np.zeros((0, 32), dtype=np.uint8)
@@ -614,7 +614,7 @@ def consistent_candidates(
         )
     support = agree.sum(axis=1) + (agree @ weights) / (np.sum(weights) + 1.0)
     seed = int(np.argmax(support))
-    group = agree[seed].copy()
+    group: npt.NDArray[np.bool_] = agree[seed].copy()
     mean = weighted_pose_mean(poses[group], weights[group])
     r = pose_residuals(poses, mean)
     group &= (np.linalg.norm(r[:, :3], axis=1) < rotation_rad) & (

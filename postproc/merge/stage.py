@@ -68,7 +68,7 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -620,7 +620,8 @@ def _observe(
                 bar.update(1)
                 if stamp not in index_of:
                     continue
-                image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+                # IMREAD_GRAYSCALE always decodes to 8-bit.
+                image = cast(npt.NDArray[np.uint8], cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
                 if image is None:
                     raise InputError(f"{path}: cannot read the keyframe image")
                 detections = detect_tags(image, options.detection)

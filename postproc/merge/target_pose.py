@@ -99,10 +99,10 @@ def estimate_target_pose(
         return None
     best: tuple[float, FloatArray, FloatArray] | None = None
     for i in range(int(count)):
-        rvec = np.asarray(rvecs[i], dtype=np.float64).reshape(3, 1)
-        tvec = np.asarray(tvecs[i], dtype=np.float64).reshape(3, 1)
+        rvec0 = np.asarray(rvecs[i], dtype=np.float64).reshape(3, 1)
+        tvec0 = np.asarray(tvecs[i], dtype=np.float64).reshape(3, 1)
         try:
-            rvec, tvec = cv2.solvePnPRefineLM(obj_v, xy, identity, None, rvec, tvec)
+            rvec, tvec = cv2.solvePnPRefineLM(obj_v, xy, identity, None, rvec0, tvec0)
         except cv2.error:
             continue
         pose = make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
@@ -169,4 +169,5 @@ def _pose_covariance(
         covariance = np.linalg.inv(J.T @ J) * sigma2
     except np.linalg.LinAlgError:
         return np.full((6, 6), np.inf)
-    return 0.5 * (covariance + covariance.T)
+    symmetric: FloatArray = 0.5 * (covariance + covariance.T)
+    return symmetric
