@@ -168,6 +168,7 @@ def run_quick_look(root: Path, sim: Path, *, euroc: bool, width_px: int) -> dict
     from postproc.pipeline.evaluate import evaluate_project
     from postproc.pipeline.project import load_project
     from postproc.pipeline.quick import quick_project, quick_stages, run_quick
+    from postproc.pipeline.stages import STAGES
 
     project = load_project(project_file(root, sim, euroc=euroc))
     started = time.monotonic()
@@ -185,8 +186,10 @@ def run_quick_look(root: Path, sim: Path, *, euroc: bool, width_px: int) -> dict
         "page": str(page),
     }
     try:
+        # The full registry, with the quick look's places (its imports are the full run's).
         errors = evaluate_project(
-            quick_project(project, width_px=width_px), stages=quick_stages(project)
+            quick_project(project, width_px=width_px),
+            stages={**STAGES, **quick_stages(project)},
         )
         figures["slam_ate_m"] = {
             name: s.get("slam_ate_m") for name, s in errors.get("sessions", {}).items()
