@@ -114,8 +114,14 @@ def _fit_radtan(
     except cv2.error as error:
         raise StageError(f"intrinsics: OpenCV calibration failed ({error.err})") from None
     _, K, dist, rvecs, tvecs, std_intrinsics = output[:6]
-    camera = _camera_from_opencv(PinholeRadtan, (width, height), K, dist)
-    poses = [_pose(r, t) for r, t in zip(rvecs, tvecs, strict=True)]
+    # OpenCV's calibration outputs are float64.
+    camera = _camera_from_opencv(
+        PinholeRadtan, (width, height), typing.cast(FloatArray, K), typing.cast(FloatArray, dist)
+    )
+    poses = [
+        _pose(typing.cast(FloatArray, r), typing.cast(FloatArray, t))
+        for r, t in zip(rvecs, tvecs, strict=True)
+    ]
     return camera, poses, np.asarray(std_intrinsics, dtype=np.float64).ravel()[:4]
 
 
@@ -147,8 +153,14 @@ def _fit_equidistant(
         )
     except cv2.error as error:
         raise StageError(f"intrinsics: OpenCV fisheye calibration failed ({error.err})") from None
-    camera = _camera_from_opencv(PinholeEquidistant, (width, height), K, D)
-    poses = [_pose(r, t) for r, t in zip(rvecs, tvecs, strict=True)]
+    # OpenCV's calibration outputs are float64.
+    camera = _camera_from_opencv(
+        PinholeEquidistant, (width, height), typing.cast(FloatArray, K), typing.cast(FloatArray, D)
+    )
+    poses = [
+        _pose(typing.cast(FloatArray, r), typing.cast(FloatArray, t))
+        for r, t in zip(rvecs, tvecs, strict=True)
+    ]
     return camera, poses, np.full(4, np.nan)
 
 

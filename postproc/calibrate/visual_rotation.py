@@ -15,6 +15,8 @@ normalised image coordinates, so radtan and equidistant lenses are handled alike
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import numpy.typing as npt
 
@@ -57,7 +59,7 @@ def target_from_cam(
     cam_from_target[:3, 3] = np.asarray(tvec).ravel()
     if cam_from_target[2, 3] <= 0:
         return None
-    pose: FloatArray = np.linalg.inv(cam_from_target)
+    pose = cast(FloatArray, np.linalg.inv(cam_from_target))
     return pose
 
 
@@ -76,8 +78,9 @@ def rotation_from_features(
     )
     if corners is None or len(corners) < options.min_inliers:
         return None
-    tracked, status, _ = cv2.calcOpticalFlowPyrLK(previous, current, corners, None)
-    back, status_back, _ = cv2.calcOpticalFlowPyrLK(current, previous, tracked, None)
+    # The stubs do not allow None for nextPts, which OpenCV documents as optional.
+    tracked, status, _ = cv2.calcOpticalFlowPyrLK(previous, current, corners, None)  # type: ignore[call-overload]
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(current, previous, tracked, None)  # type: ignore[call-overload]
     good = (status.ravel() == 1) & (status_back.ravel() == 1)
     good &= np.linalg.norm((back - corners).reshape(-1, 2), axis=1) < 0.5
     if good.sum() < options.min_inliers:

@@ -112,7 +112,8 @@ def prior_sigmas_m(
     """Per-keyframe prior sigma (N,), metres, growing with the distance travelled."""
     steps = np.linalg.norm(np.diff(positions_m, axis=0), axis=1)
     travelled = np.r_[0.0, np.cumsum(steps)]
-    return np.sqrt(floor_m**2 + world_sigma_m**2 + (drift_per_m * travelled) ** 2)
+    sigmas: FloatArray = np.sqrt(floor_m**2 + world_sigma_m**2 + (drift_per_m * travelled) ** 2)
+    return sigmas
 
 
 def build_keyframes(
