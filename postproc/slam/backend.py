@@ -125,7 +125,7 @@ def release_freed_memory() -> None:
     trim(0)
 
 
-def gtsam_reason(error: BaseException) -> str:
+def gtsam_reason(error: BaseException | None) -> str:
     """GTSAM's multi-line exception text in one line (what failed and near which variable)."""
     return " ".join(str(error).split())[:160]
 
@@ -523,11 +523,11 @@ class VisualInertialBackend:
             if self._rebuild_dropping_landmarks(graph, values, factors_before, symbol):
                 self.stats.recovered_updates += 1
                 return
-        error = self._last_rebuild_error
+        last_error = self._last_rebuild_error
         raise StageError(
             f"visual-inertial backend failed {where}, {len(self._landmarks)} landmarks) "
-            f"even after recovery: {gtsam_reason(error)} (first: {gtsam_reason(first_error)})"
-        ) from error
+            f"even after recovery: {gtsam_reason(last_error)} (first: {gtsam_reason(first_error)})"
+        ) from last_error
 
     def _rebuild_dropping_landmarks(
         self, graph: Any, values: Any, factors_before: int, symbol: tuple[str, int]

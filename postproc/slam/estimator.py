@@ -79,7 +79,7 @@ class SlamResult:
     keyframe_session_from_cam: FloatArray
     landmark_ids: IntArray
     landmarks_s: FloatArray
-    stats: dict[str, float | int | str | dict[str, int]]
+    stats: dict[str, float | int | str | bool | list[float | None] | dict[str, int] | None]
 
 
 @dataclass
@@ -624,7 +624,7 @@ class SlamEstimator:
         for seg in self._segments:
             for key, value in seg.counters.items():
                 counters[key] += value
-        stats: dict[str, float | int | str | dict[str, int]] = {
+        stats: dict[str, float | int | str | bool | list[float | None] | dict[str, int] | None] = {
             "frames": len(self._frame_stamps) - first_frame,
             "frames_before_start": first_frame,
             "keyframes": len(states),

@@ -31,6 +31,8 @@ coordinates.
 
 from __future__ import annotations
 
+from typing import cast
+
 import cv2
 import numpy as np
 import numpy.typing as npt
@@ -142,15 +144,18 @@ class KltFrontend:
         """Grey, resized and equalised image the tracker works on."""
         if image.ndim == 3:
             code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-            image = cv2.cvtColor(image, code)
+            image = cast(Image, cv2.cvtColor(image, code))
         # 16-bit PNGs (some dataset tools write them): keep the high byte.
         grey = (image >> 8).astype(np.uint8) if image.dtype == np.uint16 else image
         if grey.shape[1] != self.camera.width or grey.shape[0] != self.camera.height:
-            grey = cv2.resize(
-                grey, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA
+            grey = cast(
+                Image,
+                cv2.resize(
+                    grey, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA
+                ),
             )
         if self._clahe is not None:
-            grey = self._clahe.apply(grey)
+            grey = cast(Image, self._clahe.apply(grey))
         return grey
 
     def track(
@@ -291,7 +296,9 @@ class KltFrontend:
             return np.ones(n, dtype=bool)
         a = self._lut.normalised(previous.astype(np.float64))
         b = self._lut.normalised(current.astype(np.float64))
-        finite = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
+        finite: npt.NDArray[np.bool_] = np.all(np.isfinite(a), axis=1) & np.all(
+            np.isfinite(b), axis=1
+        )
         if finite.sum() < 8:
             return finite
         # Hardly any motion: the essential matrix is undefined; keep the KLT survivors.
@@ -391,7 +398,11 @@ class KltFrontend:
                 mask=mask[y0:y1, x0:x1],
             )
             if corners is not None:
-                found.append(corners.reshape(-1, 2) + np.array([x0, y0], np.float32))
+                # goodFeaturesToTrack returns float32 corners.
+                found.append(
+                    cast(npt.NDArray[np.float32], corners.reshape(-1, 2))
+                    + np.array([x0, y0], np.float32)
+                )
         return found
 
 

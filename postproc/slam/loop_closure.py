@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -192,11 +193,12 @@ def orb_descriptors(
 
     ORB drops points whose patch leaves the image; the indices say which rows survived.
     """
-    orb = orb or cv2.ORB_create(edgeThreshold=15, patchSize=31)
+    orb = orb or cv2.ORB.create(edgeThreshold=15, patchSize=31)
     keypoints = [
         cv2.KeyPoint(float(x), float(y), 31.0, -1, 0, 0, i) for i, (x, y) in enumerate(pixels)
     ]
     kept, descriptors = orb.compute(image, keypoints)
     if descriptors is None or not kept:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 32), dtype=np.uint8)
-    return np.array([k.class_id for k in kept], dtype=np.int64), descriptors
+    # ORB descriptors are uint8.
+    return np.array([k.class_id for k in kept], dtype=np.int64), cast(Descriptors, descriptors)

@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import numpy.typing as npt
 
 from postproc.slam.estimator import SlamResult
 from postproc.slam.initialization import preintegrate, session_from_body_rotation
@@ -42,7 +43,10 @@ from shared.geometry import make_pose
 
 
 def mean_force_in_frame(
-    stamps_ns: FloatArray, frame_from_body: FloatArray, imu: ImuSamples, shift_ns: int
+    stamps_ns: npt.NDArray[np.int64],
+    frame_from_body: FloatArray,
+    imu: ImuSamples,
+    shift_ns: int,
 ) -> FloatArray:
     """Mean accelerometer reading (3,) rotated into the poses' frame, over their span.
 
@@ -62,7 +66,7 @@ def mean_force_in_frame(
 
 
 def imu_scale(
-    stamps_ns: FloatArray,
+    stamps_ns: npt.NDArray[np.int64],
     session_from_body: FloatArray,
     imu: ImuSamples,
     *,
