@@ -69,7 +69,8 @@ def _fit_channel(intensity: FloatArray, ranges: FloatArray) -> tuple[float, floa
     def residual(p: FloatArray) -> FloatArray:
         a, b, beta = p
         t = np.exp(-beta * r)
-        return a * t + b * (1.0 - t) - i
+        value: FloatArray = a * t + b * (1.0 - t) - i
+        return value
 
     start = np.array([float(i.max()), float(i.min()) / 2.0, 0.2])
     fit = least_squares(residual, start, bounds=([0.0, 0.0, 0.0], [2.0, 1.0, 5.0]))
@@ -161,7 +162,7 @@ def correct_fused(
         water = WaterEstimate(
             attenuation_per_m=options.attenuation_per_m,
             backscatter=options.backscatter or (0.0, 0.0, 0.0),
-            albedo=(float("nan"),) * 3,  # type: ignore[arg-type]
+            albedo=(float("nan"),) * 3,
             estimated=False,
         )
     else:

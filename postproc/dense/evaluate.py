@@ -13,6 +13,7 @@ resolution, in the pinhole `undistorted_canvas` that holds a distorted camera's 
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -63,7 +64,8 @@ def point_triangle_distance(
     closest = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, closest)
     closest = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, closest)
     closest = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, closest)
-    return np.linalg.norm(p - closest, axis=1)
+    distances: FloatArray = np.linalg.norm(p - closest, axis=1)
+    return distances
 
 
 def sample_surface(
@@ -150,7 +152,8 @@ def visibility_counts(
             points_m, Ks, cams_from_world, depth_maps_m, tolerance_m=tolerance_m,
             tolerance_rel=tolerance_rel, nearest=len(Ks),
         )  # fmt: skip
-        return np.sum(ranges <= max_range_m, axis=1).astype(np.int64)
+        within: npt.NDArray[np.int64] = np.sum(ranges <= max_range_m, axis=1).astype(np.int64)
+        return within
     return counts
 
 
@@ -339,7 +342,7 @@ def seen_counts(
     rasteriser = MeshRasteriser(vertices_m, triangles)
     tree = cKDTree(points) if np.isfinite(max_range_m) else None
     poses = [np.asarray(p, dtype=np.float64) for p in cams_from_world]
-    loop = poses
+    loop: Iterable[FloatArray] = poses
     if progress_label is not None:
         from shared.progress import progress
 

@@ -14,6 +14,7 @@ Pure math on arrays (numpy, OpenCV); no file I/O.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -37,7 +38,7 @@ class StereoView:
 
 def _gray(image: Image) -> Image:
     if image.ndim == 3:
-        return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        return cast(Image, cv2.cvtColor(image, cv2.COLOR_RGB2GRAY))
     return image
 
 
@@ -157,7 +158,7 @@ def pair_depth(
     left = cv2.warpPerspective(_gray(ref.image), H_ref, (rect_w, rect_h), flags=cv2.INTER_LINEAR)
     right = cv2.warpPerspective(_gray(src.image), H_src, (rect_w, rect_h), flags=cv2.INTER_LINEAR)
     block = options.block_size_px
-    matcher = cv2.StereoSGBM_create(
+    matcher = cv2.StereoSGBM.create(
         minDisparity=0,
         numDisparities=num,
         blockSize=block,
@@ -198,7 +199,8 @@ def pair_depth(
     r = rect_from_ref
     depth = r[0, 2] * x_rect + r[1, 2] * y_rect + r[2, 2] * z_rect
     depth[~valid | (depth < z_min) | (depth > z_max)] = 0.0
-    return depth.astype(np.float32)
+    depth32: npt.NDArray[np.float32] = depth.astype(np.float32)
+    return depth32
 
 
 def consistent_depth(pair_depths: list[F32], options: CpuStereoOptions | None = None) -> F32:
@@ -228,7 +230,8 @@ def nan_median_first_axis(stack: F32) -> F32:
     last = len(stack) - 1
     low = np.take_along_axis(ordered, np.clip((count - 1) // 2, 0, last)[None], axis=0)[0]
     high = np.take_along_axis(ordered, np.clip(count // 2, 0, last)[None], axis=0)[0]
-    return ((low + high) / 2).astype(stack.dtype)
+    median: npt.NDArray[np.float32] = ((low + high) / 2).astype(stack.dtype)
+    return median
 
 
 def normals_from_depth(depth_m: F32, K: FloatArray, *, step_px: int = 2) -> F32:

@@ -9,6 +9,8 @@ the image, where rectification degenerates).
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import numpy.typing as npt
 
@@ -158,7 +160,7 @@ def _ranked(
     """Each reference image's partners scoring above 0 at the given depths, best first."""
     n = len(Ks)
     depths = np.asarray(scene_depths_m, dtype=np.float64)
-    worlds_from_cam = [np.linalg.inv(T) for T in cams_from_world]
+    worlds_from_cam = [cast(FloatArray, np.linalg.inv(T)) for T in cams_from_world]
     centres = np.array([T[:3, 3] for T in worlds_from_cam]).reshape(n, 3)
     axes = np.array([T[:3, 2] for T in worlds_from_cam]).reshape(n, 3)
     result: list[list[int]] = []

@@ -50,7 +50,8 @@ def _clip_near(P: FloatArray, near_m: float) -> FloatArray:
         """Triangles of `mask` with their odd vertex (`odd` per vertex) first, order kept."""
         first = np.argmax(odd[mask], axis=1)
         order = (first[:, None] + np.arange(3)[None, :]) % 3
-        return P[rows[mask][:, None], order]
+        rolled_P: FloatArray = P[rows[mask][:, None], order]
+        return rolled_P
 
     def cut(a: FloatArray, b: FloatArray) -> FloatArray:
         """Where segment a->b crosses z = near_m (a and b on opposite sides)."""
@@ -174,7 +175,7 @@ def _draw(depth: FloatArray, P: FloatArray, K: FloatArray, width: int, height: i
     # Every screen quantity below is affine in the pixel (pu, pv): the barycentric
     # weights (edge functions over twice the area, either orientation) and 1/z (affine in
     # screen space under perspective). Rows: (d/du, d/dv, value at the box's corner).
-    coef = np.empty((len(u), 4, 3))
+    coef: FloatArray = np.empty((len(u), 4, 3))
     for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):
         du = -(w[:, k] - w[:, j]) / area
         dv = (u[:, k] - u[:, j]) / area
