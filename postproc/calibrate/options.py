@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from shared.calibration.aprilgrid_detection import DetectionOptions
+from shared.calibration.aprilgrid_options import DetectionOptions
 
 #: Camera models the intrinsics fit knows, by their names on the command line.
 CameraModelName = Literal["pinhole-radtan", "pinhole-equidistant"]
