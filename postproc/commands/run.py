@@ -101,7 +101,8 @@ def _run(args: argparse.Namespace) -> int:
         return int(result.exit_code())
     if not args.no_report:
         print(f"report: {write_report(project, result=result)}")
-    return result.exit_code()
+    code: int = result.exit_code()
+    return code
 
 
 def _report(args: argparse.Namespace) -> int:

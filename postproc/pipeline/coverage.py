@@ -416,7 +416,7 @@ def coverage_map(
     has_surface = (weight > 0).reshape(rows, cols)
     # The outline: the silhouette of the whole surface (not only of what faces this view:
     # a side nobody filmed is a gap, not a blank), closed over one-cell cracks, filled.
-    silhouette = np.zeros(rows * cols, dtype=bool)
+    silhouette: npt.NDArray[np.bool_] = np.zeros(rows * cols, dtype=bool)
     silhouette[row * cols + col] = True
     silhouette = silhouette.reshape(rows, cols)
     closed = ndimage.binary_closing(silhouette, structure=np.ones((3, 3)), iterations=1)

@@ -282,7 +282,7 @@ def truth_camera(truth: dict[str, Any]) -> Any:
         raise InputError(
             f"truth.json: camera model {model} unknown (expected one of {sorted(CAMERA_MODELS)})"
         )
-    return CAMERA_MODELS[model].from_kalibr(  # type: ignore[index]
+    return CAMERA_MODELS[model].from_kalibr(
         (int(camera["width"]), int(camera["height"])),
         [float(x) for x in camera["intrinsics_fx_fy_cx_cy"]],
         [float(x) for x in camera["distortion_k1_k2_p1_p2"]],

@@ -55,8 +55,8 @@ from shared.folders import (
 )
 
 if TYPE_CHECKING:
-    from postproc.pipeline.parallel import MapFn
     from postproc.pipeline.project import Project, SessionSpec
+    from shared.progress import MapFn
 
 log = logging.getLogger(__name__)
 
