@@ -169,7 +169,7 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
     imu_from_cam = invert_pose(cam_from_imu)
     folders = RunFolders(project.output, stages)
     result: dict[str, Any] = {"truth": str(project.truth), "sessions": {}}
-    cam_truth: dict[str, tuple[npt.NDArray[np.int64], Any]] = {}
+    cam_truth: dict[str, tuple[int, Any]] = {}
     for index, session in enumerate(project.sessions):
         k = session.truth_session if session.truth_session is not None else index
         if k >= len(truth["sessions"]):

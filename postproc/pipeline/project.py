@@ -36,7 +36,7 @@ from typing import Any, Literal
 from postproc.pipeline.stages import STAGES, Stage
 from shared.errors import InputError
 
-SESSION_SOURCES = ("euroc", "session", "gopro")
+SESSION_SOURCES: tuple[Literal["euroc", "session", "gopro"], ...] = ("euroc", "session", "gopro")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
