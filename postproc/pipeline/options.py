@@ -26,7 +26,7 @@ import typing
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 from shared.errors import InputError
 
@@ -360,7 +360,8 @@ def stages_example() -> str:
             if dataclasses.is_dataclass(hint):
                 value = "{}"
                 first = (hint.__doc__ or "").strip().splitlines()[0].rstrip(".")
-                text = f"{hint.__name__}: {first}"
+                # A field's type hint: the dataclass itself, never an instance.
+                text = f"{cast(type, hint).__name__}: {first}"
             else:
                 value = _yaml_value(default)
                 text = _comment(docs[f.name] or f.name, f.name)
