@@ -52,7 +52,7 @@ def test_known_error_is_one_line(tmp_path, capsys) -> None:
 
     class Module:
         @staticmethod
-        def register(subparsers: argparse._SubParsersAction) -> None:
+        def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
             subparsers.add_parser("boom").set_defaults(handler=handler)
 
     sys.modules["_wreckmap_test_boom"] = Module  # type: ignore[assignment]

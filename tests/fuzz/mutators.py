@@ -268,7 +268,7 @@ def mutate_xml(rng: random.Random, data: bytes) -> bytes:
             element.set(
                 pick(rng, ("time", "depth", "temp", "date", "id")), pick(rng, WEIRD_NUMBERS)
             )
-    text = ET.tostring(root, encoding="utf-8")
+    text: bytes = ET.tostring(root, encoding="utf-8")
     if rng.random() < 0.15:
         text = mutate_bytes(rng, text, rounds=rng.randrange(1, 3))
     return text

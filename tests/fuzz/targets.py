@@ -18,6 +18,7 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -344,7 +345,8 @@ def _mcap_seeds() -> list[tuple[str, bytes]]:
 
     rng = np.random.default_rng(5)
     seeds = []
-    for compression, chunk_size in (("zstd", 3000), ("none", 2000)):
+    cases: tuple[tuple[Literal["zstd", "none"], int], ...] = (("zstd", 3000), ("none", 2000))
+    for compression, chunk_size in cases:
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "seed.mcap"
             with ArchiveWriter(
@@ -404,6 +406,10 @@ def _calibration_files() -> dict[str, bytes]:
     from shared.geometry import make_pose, so3_exp
 
     rng = np.random.default_rng(7)
+    models: list[type[PinholeRadtan] | type[PinholeEquidistant]] = [
+        PinholeRadtan,
+        PinholeEquidistant,
+    ]
     cams = [
         CameraCalibration(
             camera=model(640, 480, 500.5, 501.25, 319.7, 239.9, -0.1, 0.02, 0.001, -0.002),
@@ -411,7 +417,7 @@ def _calibration_files() -> dict[str, bytes]:
             timeshift_cam_imu_s=1.5e-3,
             name=f"cam{i}",
         )
-        for i, model in enumerate((PinholeRadtan, PinholeEquidistant))
+        for i, model in enumerate(models)
     ]
     noise = ImuNoise(2.0e-3, 3.0e-3, 1.6968e-4, 1.9393e-5, 200.0, "/imu0")
     target = AprilGridTarget(tag_rows=6, tag_cols=6, tag_size_m=0.088, tag_spacing_ratio=0.3)

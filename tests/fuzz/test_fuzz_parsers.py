@@ -54,7 +54,7 @@ def test_seed_inputs_are_valid(name: str, tmp_path: Path) -> None:
         assert outcome.kind == "ok", f"{name}: seed {label}: {outcome.kind}: {outcome.message}"
 
 
-def _make_test(name: str):  # type: ignore[no-untyped-def]
+def _make_test(name: str):
     @settings(
         max_examples=EXAMPLES.get(name, DEFAULT_EXAMPLES),
         derandomize=True,

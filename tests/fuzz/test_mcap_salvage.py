@@ -54,7 +54,9 @@ def _salvaged(path: Path, end: int) -> set[tuple[str, int]]:
         return {(topic, message.stamp_ns) for topic, _, message in reader.messages()}
 
 
-def _expected(path: Path, chunks: list[tuple[int, int, int, int]], lost: set[int]) -> list:
+def _expected(
+    path: Path, chunks: list[tuple[int, int, int, int]], lost: set[int]
+) -> list[tuple[str, int]]:
     """(topic, stamp) of every message outside the lost chunks, in log-time order (found by
     salvaging copies of the intact file cut at chunk ends)."""
     everything = {(topic, m.stamp_ns) for topic, m in _messages(300)}

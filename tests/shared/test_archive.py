@@ -276,7 +276,7 @@ def test_round_trip_all_types_in_log_time_order(
 ) -> None:
     rng = np.random.default_rng(10)
     messages = sample_messages(rng)
-    rng.shuffle(messages)  # type: ignore[arg-type]  # out-of-order writes, overlapping chunks
+    rng.shuffle(messages)  # out-of-order writes, overlapping chunks
     path = tmp_path / "rec.mcap"
     write_all(path, messages, compression=compression, chunk_size=chunk_size)
     expected = in_log_order(messages)

@@ -213,7 +213,7 @@ def test_rosbags_types_from_our_msg_text() -> None:
     for kind in (DepthSample, SessionInfo, RecorderEvent):
         store.register(get_types_from_msg(cdr.schema_text(kind), kind.ROS_TYPE_NAME))
     sample = DepthSample(stamp_ns=T0, frame_id="d", depth_m=1.25, pressure_pa=1.5e5)
-    msg = store.deserialize_cdr(cdr.encode(sample), DepthSample.ROS_TYPE_NAME)
+    msg: Any = store.deserialize_cdr(cdr.encode(sample), DepthSample.ROS_TYPE_NAME)
     check_rosbags_message(msg, sample)
     # ...and the other way: rosbags serializes the same bytes as we do.
     assert store.serialize_cdr(msg, msg.__msgtype__) == cdr.encode(sample)

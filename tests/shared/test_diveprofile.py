@@ -26,7 +26,7 @@ START = 1_700_000_000.0  # 2023-11-14T22:13:20 on the computer's wall clock
 
 def make_dive(start_s: float = START, *, fingerprint: str = "6553F100", n: int = 6) -> DiveProfile:
     rng = np.random.default_rng(7)
-    stamps = start_s + 10.0 * np.arange(1, n + 1)
+    stamps = np.asarray(start_s + 10.0 * np.arange(1, n + 1), dtype=np.float64)
     depth = rng.uniform(0, 40, n) * 0.3048  # imperial-style values: many digits
     temp = rng.uniform(2, 25, n)
     temp[1] = np.nan

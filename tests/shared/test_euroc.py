@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -81,7 +82,9 @@ def _trajectory(count: int) -> Trajectory:
     return Trajectory(stamps_ns=stamps, poses=poses)
 
 
-def _write_sample(folder: Path, *, model: type = PinholeRadtan, noise: bool = True) -> dict:
+def _write_sample(
+    folder: Path, *, model: type = PinholeRadtan, noise: bool = True
+) -> dict[str, Any]:
     rng = np.random.default_rng(9)
     calibration = _calibration(model)
     imu_noise = ImuNoise(2.0e-3, 3.0e-3, 1.6968e-4, 1.9393e-5, 200.0, "/imu: #1") if noise else None
@@ -173,6 +176,7 @@ def test_defaults_without_noise_velocities_or_biases(tmp_path: Path) -> None:
     expected = np.gradient(
         trajectory.poses[:, :3, 3], (trajectory.stamps_ns - trajectory.stamps_ns[0]) * 1e-9, axis=0
     )
+    assert dataset.groundtruth_velocities_m_s is not None
     np.testing.assert_allclose(dataset.groundtruth_velocities_m_s, expected)
     np.testing.assert_array_equal(dataset.groundtruth_gyro_bias, 0.0)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -21,7 +22,7 @@ from shared.folders import (
 )
 
 
-def _build(folder: SlamFolder, stamp: dict, text: str, **kwargs: object) -> bool:
+def _build(folder: SlamFolder, stamp: dict[str, Any], text: str, **kwargs: object) -> bool:
     """Run the rule once; write a result holding `text`. True when it built."""
     with rebuild(folder, stamp, **kwargs) as work:  # type: ignore[arg-type]
         if work is None:

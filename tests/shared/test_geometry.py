@@ -41,7 +41,7 @@ translations = st.tuples(*[st.floats(-100.0, 100.0)] * 3).map(np.array)
 @st.composite
 def rotvecs(draw: st.DrawFn, max_angle: float = np.pi - 1e-9) -> np.ndarray:
     axis = np.array(draw(st.tuples(finite, finite, finite)))
-    n = np.linalg.norm(axis)
+    n = float(np.linalg.norm(axis))
     if n < 1e-3:
         axis, n = np.array([0.0, 0.0, 1.0]), 1.0
     angle = draw(
@@ -51,7 +51,8 @@ def rotvecs(draw: st.DrawFn, max_angle: float = np.pi - 1e-9) -> np.ndarray:
             st.floats(max(0.0, max_angle - 1e-6), max_angle),  # near a half turn
         )
     )
-    return axis / n * angle
+    rotvec: np.ndarray = axis / n * angle
+    return rotvec
 
 
 @st.composite

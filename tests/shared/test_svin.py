@@ -61,7 +61,7 @@ def test_svin_stamps_are_read_exactly(tmp_path: Path) -> None:
     path.write_text(_svin_text(truth))
     assert "1731151716.65535333 " in path.read_text()  # the spelling of the issue
     for fmt in ("auto", "svin"):
-        read = read_trajectory(path, format=fmt)  # type: ignore[arg-type]
+        read = read_trajectory(path, format=fmt)
         np.testing.assert_array_equal(read.trajectory.stamps_ns, STAMPS_NS)
         np.testing.assert_allclose(read.trajectory.poses, truth.poses, atol=1e-8)
         assert read.stamps == "svin" and read.layout == "tum" and read.pose_frame is None

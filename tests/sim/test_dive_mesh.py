@@ -17,14 +17,14 @@ START_NS = 1_718_443_800_000_000_000
 
 
 @pytest.fixture(scope="module")
-def trajectory():  # type: ignore[no-untyped-def]
+def trajectory():
     return diver_trajectory(
         builtin_route(0), start_ns=START_NS, duration_s=60.0,
         cam_from_imu=default_cam_from_imu(), rng=np.random.default_rng(2),
     )  # fmt: skip
 
 
-def test_profile_is_a_dive_on_the_computer_clock(trajectory) -> None:  # type: ignore[no-untyped-def]
+def test_profile_is_a_dive_on_the_computer_clock(trajectory) -> None:
     clock = ClockModel(offset_ns=-7_200_000_000_000 + 41_500_000_000, drift_ppm=37.0,
                        reference_ns=START_NS)  # fmt: skip
     options = DiveComputerOptions()
@@ -95,7 +95,7 @@ def test_mesh_covers_the_scene_with_outward_normals(coarse_scene: WreckScene) ->
     assert vertices[:, 2].min() >= coarse_scene.seafloor_z_m - 1e-9
 
 
-def test_ply_is_binary_with_colours(tmp_path, coarse_scene: WreckScene) -> None:  # type: ignore[no-untyped-def]
+def test_ply_is_binary_with_colours(tmp_path, coarse_scene: WreckScene) -> None:
     mesh = scene_mesh(coarse_scene, cell_m=1.0)
     vertices, triangles = mesh.vertices, mesh.triangles
     path = write_ply(tmp_path / "mesh.ply", mesh)

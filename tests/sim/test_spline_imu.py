@@ -82,7 +82,7 @@ def test_malformed_splines_raise(
         )
 
 
-def integrate(stamps_ns, gyro, accel, rotation0, position0, velocity0):  # type: ignore[no-untyped-def]
+def integrate(stamps_ns, gyro, accel, rotation0, position0, velocity0):
     """Strapdown integration at the IMU rate: rotation with a coning correction, velocity
     and position with the trapezoidal rule on the world acceleration."""
     dt = np.diff(stamps_ns) * 1e-9

@@ -99,6 +99,7 @@ def test_same_seed_same_bytes(tmp_path: Path, survey: Path) -> None:
     stamp = int(sim.sessions[1].frame_stamps_cam_ns[3])
     stored = cv2.imread(str(other / f"session_01/depth/{stamp}.png"), cv2.IMREAD_UNCHANGED)
     rendered = sim.render_frame(1, stamp, frame_index=3).depth_m
+    assert stored is not None
     assert stored.dtype == np.uint16
     np.testing.assert_array_equal(stored, depth_png_mm(rendered))
     assert 500 < np.median(stored) < 10000
