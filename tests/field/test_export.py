@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -53,11 +54,14 @@ def test_euroc_round_trip(session: Path, truth: dict[str, np.ndarray], tmp_path:
     assert np.allclose(dataset.gyro_rad_s, truth["gyro"], atol=1e-9)
     assert np.allclose(dataset.accel_m_s2, truth["accel"], atol=1e-9)
     first = cv2.imread(str(dataset.image_paths[0]), cv2.IMREAD_UNCHANGED)
+    assert first is not None
     assert np.array_equal(first, truth["first"])  # PNG is lossless
     assert dataset.camera is not None
     full = read_camchain(session / "calib" / "camchain.yaml")[0].camera
     assert dataset.camera.camera.width == round(full.width * 0.5)
-    assert dataset.camera.camera.intrinsic_matrix[0, 0] == pytest.approx(full.fx * 0.5)
+    assert dataset.camera.camera.intrinsic_matrix[0, 0] == pytest.approx(
+        full.intrinsic_matrix[0, 0] * 0.5
+    )
     assert dataset.imu_noise is not None
     with pytest.raises(OutputExistsError):
         export_session(ExportOptions(format="euroc"), session, out)
@@ -79,7 +83,7 @@ def test_rosbag1_round_trip(
     gyro = []
     with Reader(bag) as reader:
         for connection, timestamp, raw in reader.messages():
-            message = typestore.deserialize_ros1(raw, connection.msgtype)
+            message: Any = typestore.deserialize_ros1(raw, connection.msgtype)
             stamp = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
             assert stamp == timestamp
             stamps[connection.topic].append(stamp)

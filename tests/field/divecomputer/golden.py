@@ -53,7 +53,9 @@ def load() -> GoldenSession:
         total = None
         if "..." in rest:
             rest, tail = rest.split("...", 1)
-            total = int(re.search(r"\((\d+) bytes on the wire\)", tail).group(1))
+            wire = re.search(r"\((\d+) bytes on the wire\)", tail)
+            assert wire is not None
+            total = int(wire.group(1))
         trace.append((direction, _hex(rest), total))
     return GoldenSession(
         dive_a=_dump(_section(text, "### Dive A")),

@@ -55,6 +55,13 @@ def simulator_thread(
         yield port
 
 
+def _answer(device: SimulatedShearwater, payload: bytes) -> bytes:
+    """The device's answer to one request payload (one is expected)."""
+    reply = device.handle(payload)
+    assert reply is not None
+    return reply
+
+
 def assert_same_dives(truth: Path, downloaded: Path) -> None:
     """Byte-identical CSVs and raw logs, and the same index apart from the source."""
     truth_index = read_dive_index(truth)
@@ -328,26 +335,26 @@ def test_simulator_refusals() -> None:
         SimulatedShearwater("petrel2", synthetic_dives(1), sample_interval_s=100)
     device = SimulatedShearwater("petrel2", synthetic_dives(1, duration_s=60))
     nak = protocol.NEGATIVE
-    assert device.handle(protocol.transfer_request(1))[:2] == bytes((nak, 0x36))
-    assert device.handle(protocol.exit_request())[:2] == bytes((nak, 0x37))
-    assert device.handle(protocol.rdbi_request(0x1234))[0] == nak
-    assert device.handle(protocol.wdbi_request(0x1234, b"\0"))[0] == nak
-    assert device.handle(b"\x99")[1:] == b"\x99\x11"
+    assert _answer(device, protocol.transfer_request(1))[:2] == bytes((nak, 0x36))
+    assert _answer(device, protocol.exit_request())[:2] == bytes((nak, 0x37))
+    assert _answer(device, protocol.rdbi_request(0x1234))[0] == nak
+    assert _answer(device, protocol.wdbi_request(0x1234, b"\0"))[0] == nak
+    assert _answer(device, b"\x99")[1:] == b"\x99\x11"
     assert device.handle(b"") is None
-    assert device.handle(b"\x35\x00")[2] == 0x13
+    assert _answer(device, b"\x35\x00")[2] == 0x13
     bad_size = protocol.upload_request(protocol.MANIFEST_ADDRESS, 0x100, compressed=False)
-    assert device.handle(bad_size)[0] == nak
+    assert _answer(device, bad_size)[0] == nak
     clock = protocol.wdbi_request(protocol.ID_LOCAL_CLOCK, (0x6B021CD7).to_bytes(4, "big"))
     assert device.handle(clock) == protocol.wdbi_response(protocol.ID_LOCAL_CLOCK)
     assert device.local_clock_s == 0x6B021CD7
     manifest = protocol.upload_request(protocol.MANIFEST_ADDRESS, 0x600, compressed=False)
     assert device.handle(manifest) == protocol.upload_response(0xFC)
-    assert device.handle(protocol.transfer_request(3))[2] == protocol.NRC_WRONG_BLOCK_COUNTER
+    assert _answer(device, protocol.transfer_request(3))[2] == protocol.NRC_WRONG_BLOCK_COUNTER
     first = device.handle(protocol.transfer_request(1))
     assert device.handle(protocol.transfer_request(1)) == first  # a repeat: the same block
     for counter in range(2, 8):
         device.handle(protocol.transfer_request(counter))
-    assert device.handle(protocol.transfer_request(8))[2] == protocol.NRC_SEQUENCE_ERROR
+    assert _answer(device, protocol.transfer_request(8))[2] == protocol.NRC_SEQUENCE_ERROR
     # Frames that are not requests get no answer.
     assert device.feed(protocol.encode_response(b"\x22\x80\x10")) == []
     assert device.feed(bytes.fromhex("FF 01 DB C0")) == []

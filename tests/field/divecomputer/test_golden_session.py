@@ -66,7 +66,7 @@ class ScriptedShearwater:
         self.position = 0
         self.pending = bytearray()
         self.outgoing = bytearray()
-        self.timeout = 0.01
+        self.timeout: float | None = 0.01
         self.closed = False
 
     @property

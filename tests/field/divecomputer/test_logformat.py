@@ -14,14 +14,20 @@ from .golden import load
 GOLDEN = load()
 
 
+def _search(pattern: str, text: str) -> re.Match[str]:
+    match = re.search(pattern, text)
+    assert match is not None, pattern
+    return match
+
+
 def doc_samples(xml: str, dive_number: int) -> list[tuple[int, float, float]]:
     """(time s, depth m, temperature °C) of one dive as dctool printed it in the doc."""
     dive = xml.split("<dive>")[dive_number]
     samples = []
     for block in re.findall(r"<sample>(.*?)</sample>", dive, re.S):
-        minutes, seconds = re.search(r"<time>(\d+):(\d+)</time>", block).groups()
-        depth = float(re.search(r"<depth>([-\d.]+)</depth>", block).group(1))
-        temp = float(re.search(r"<temperature>([-\d.]+)</temperature>", block).group(1))
+        minutes, seconds = _search(r"<time>(\d+):(\d+)</time>", block).groups()
+        depth = float(_search(r"<depth>([-\d.]+)</depth>", block).group(1))
+        temp = float(_search(r"<temperature>([-\d.]+)</temperature>", block).group(1))
         samples.append((int(minutes) * 60 + int(seconds), depth, temp))
     return samples
 
@@ -34,10 +40,13 @@ def test_golden_dives_parse_as_dctool_printed(raw: bytes, number: int) -> None:
         (round(t - dive.start_s), d, c)
         for t, d, c in zip(dive.stamps_s, dive.depth_m, dive.temperature_c, strict=True)
     ]
-    assert got == [(t, pytest.approx(d, abs=0.005), pytest.approx(c)) for t, d, c in expected]
+    want: list[object] = [
+        (t, pytest.approx(d, abs=0.005), pytest.approx(c)) for t, d, c in expected
+    ]
+    assert got == want
     header = GOLDEN.xml.split("<dive>")[number]
     assert f"<fingerprint>{dive.fingerprint.hex().upper()}</fingerprint>" in header
-    minutes, seconds = re.search(r"<divetime>(\d+):(\d+)</divetime>", header).groups()
+    minutes, seconds = _search(r"<divetime>(\d+):(\d+)</divetime>", header).groups()
     assert dive.duration_s == int(minutes) * 60 + int(seconds)
     assert f"<maxdepth>{dive.max_depth_m:.2f}</maxdepth>" in header
     assert (dive.serial, dive.firmware, dive.model_number) == (0x1234ABCD, 92, 6)

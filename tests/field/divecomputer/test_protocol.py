@@ -46,6 +46,7 @@ def test_requests_on_the_wire(payload: bytes, expected: str) -> None:
     assert p.encode_request(payload) == wire(expected)
     frames = p.SlipDecoder().feed(wire(expected))
     assert frames == [wire(expected)[:-1]]
+    assert isinstance(frames[0], bytes)
     assert p.decode_request(frames[0]) == payload
 
 
@@ -72,6 +73,7 @@ def test_requests_on_the_wire(payload: bytes, expected: str) -> None:
 def test_responses_on_the_wire(payload: bytes, expected: str) -> None:
     assert p.encode_response(payload) == wire(expected)
     (frame,) = p.SlipDecoder().feed(wire(expected))
+    assert isinstance(frame, bytes)
     assert p.decode_response(frame) == payload
 
 

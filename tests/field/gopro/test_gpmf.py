@@ -32,7 +32,9 @@ def test_header_and_padding_of_one_byte_value() -> None:
         ("DMO2", "B", 1, 5, 12),
     ]
     assert decode_value(items[0]) == -1
-    assert decode_value(items[1]).reshape(-1).tolist() == [0, 1, 2, 3, 4]
+    array = decode_value(items[1])
+    assert isinstance(array, np.ndarray)
+    assert array.reshape(-1).tolist() == [0, 1, 2, 3, 4]
 
 
 @pytest.mark.parametrize(
@@ -93,7 +95,7 @@ def test_nested_stream_with_scal_and_units() -> None:
     assert stream.device_id == 1 and stream.device_name == "Camera"
     assert stream.name == "Accel" and stream.units == "m/s²" and stream.total_samples == 2
     assert stream.raw().tolist() == [[418, -836, 1254], [0, 1, -1]]
-    np.testing.assert_allclose(stream.scaled(), [[1, -2, 3], [0, 1 / 418, -1 / 418]])
+    np.testing.assert_allclose(stream.scaled(), np.array([[1, -2, 3], [0, 1 / 418, -1 / 418]]))
 
 
 def test_per_axis_scal_and_complex_type() -> None:

@@ -8,6 +8,7 @@ import sys
 from datetime import UTC, datetime
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -246,7 +247,7 @@ def test_chapters_join_on_one_continuous_clock(
 
 
 def test_dcim_folder_groups_recordings_and_skips_imported_ones(
-    tmp_path: Path, chapters: list[Path], recording: dict[str, object]
+    tmp_path: Path, chapters: list[Path], recording: dict[str, Any]
 ) -> None:
     dcim = tmp_path / "DCIM" / "100GOPRO"
     dcim.mkdir(parents=True)
@@ -255,7 +256,7 @@ def test_dcim_folder_groups_recordings_and_skips_imported_ones(
     write_gopro_mp4(
         dcim / "GX010043.MP4",
         **{**recording, "creation_time": datetime(2024, 5, 1, 11, tzinfo=UTC)},
-    )  # type: ignore[arg-type]
+    )
     (dcim / "GL010043.LRV").write_bytes(b"low-res preview, ignored")
     out = tmp_path / "sessions"
     results = import_videos(ImportOptions(), [tmp_path / "DCIM"], out)
@@ -412,9 +413,10 @@ def test_failure_leaves_no_session_and_existing_sessions_are_kept(
         import_recording(ImportOptions(), [chapters[0], junk], tmp_path / "s")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["GX020042.MP4"]
     # A crash half-way through writing (here: the disk fills up) leaves nothing behind either.
+    import field.gopro.annexb as annexb
     import field.gopro.importer as importer
 
-    real = importer.to_annexb
+    real = annexb.to_annexb  # the function importer.to_annexb names
     calls = []
 
     def failing(*args: object, **kwargs: object) -> bytes:
@@ -514,8 +516,8 @@ def test_recording_cut_inside_the_media_data_keeps_what_was_written(
     (folder / chapters[1].name).write_bytes(data[:cut_at])
     result = import_recording(ImportOptions(), sorted(folder.iterdir()), tmp_path / "s")
     assert result.frames == 90 + 60  # frames 0..59 of chapter 2 are whole; 60 is cut
-    with SessionVideo(tmp_path / "s") as video:
-        frames = list(video.frames())
+    with SessionVideo(tmp_path / "s") as stored:
+        frames = list(stored.frames())
     assert len(frames) == 150
     document = yaml.safe_load((tmp_path / "s" / "session.yaml").read_text())
     assert document["chapters"][1]["finalised"] is False

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -91,7 +92,9 @@ def _corrupt_payloads(source: Path, target: Path, indices: list[int]) -> Path:
     return target
 
 
-def _import(source: Path, session: Path) -> tuple[np.ndarray, np.ndarray, list[str], dict]:
+def _import(
+    source: Path, session: Path
+) -> tuple[np.ndarray, np.ndarray, list[str], dict[str, Any]]:
     """IMU media times (ns from the first frame), gyro, warnings, session.yaml."""
     result = import_recording(ImportOptions(), [source], session)
     with ArchiveReader(session / "recording.mcap") as reader:

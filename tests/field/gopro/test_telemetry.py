@@ -98,7 +98,8 @@ def _rotation(rotvec: np.ndarray) -> np.ndarray:
         return np.eye(3)
     k = rotvec / angle
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+    rotation: np.ndarray = np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+    return rotation
 
 
 def _quat_matrix(wxyz: np.ndarray) -> np.ndarray:

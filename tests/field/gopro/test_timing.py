@@ -59,6 +59,7 @@ def test_stmp_anchors_are_exact_and_last_payload_continues() -> None:
     np.testing.assert_allclose(timing.times_s, truth - 0.085608, atol=2e-6)
     firsts = first_sample_indices(payloads)
     for p, k in zip(payloads, firsts, strict=True):
+        assert p.timestamp_us is not None
         assert timing.times_s[k] == pytest.approx(p.timestamp_us * 1e-6 - 0.085608, abs=1e-12)
     assert timing.rate_hz == pytest.approx(197.46, rel=1e-5)
 

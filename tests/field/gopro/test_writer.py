@@ -6,6 +6,7 @@ import struct
 from datetime import UTC, datetime
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -183,7 +184,7 @@ def test_refuses_to_overwrite_and_checks_inputs(tmp_path: Path, video: writer.H2
     write(path, video, payloads, overwrite=True)
     with pytest.raises(ValueError, match="payload durations for 5 payloads"):
         write(tmp_path / "y.mp4", video, payloads, payload_durations_s=[Fraction(1)])
-    base = dict(
+    base: dict[str, Any] = dict(
         sps=video.sps, pps=video.pps, width=96, height=64, fps=FPS, gpmf_payloads=payloads,
         creation_time=WHEN,
     )  # fmt: skip

@@ -14,7 +14,7 @@ import threading
 import time
 import urllib.request
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -304,7 +304,7 @@ def test_web_preview_in_headless_chromium(
 
     def state() -> dict[str, Any]:
         with urllib.request.urlopen(base + "/state", timeout=2) as response:
-            return json.loads(response.read())
+            return cast("dict[str, Any]", json.loads(response.read()))
 
     def page_up() -> bool:
         for proc, name in ((recorder, "recorder"), (page, "preview")):

@@ -6,7 +6,7 @@ import json
 import socket
 import urllib.request
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -20,7 +20,7 @@ from field.record.preview_bus import (
 )
 from field.record.preview_web import PreviewServer, PreviewServerOptions, PreviewState, serve
 from field.record.sources.sim import SimOptions, clip_path
-from shared.archive import ArchiveReader
+from shared.archive import ArchiveReader, CompressedVideo
 from shared.errors import DeviceError
 
 
@@ -35,13 +35,16 @@ def test_thumbnails_from_key_frames_and_jpeg(sim_options: dict[str, Any]) -> Non
 
     with ArchiveReader(clip_path(SimOptions(**sim_options))) as reader:
         packets = [m for _, _, m in reader.messages(["/cam0/video"])]
-    thumb = thumbnail_jpeg(packets[0].data, "h264", width_px=160, quality=70)
+    assert all(isinstance(m, CompressedVideo) for m in packets)
+    videos = cast("list[CompressedVideo]", packets)  # checked just above
+    thumb = thumbnail_jpeg(videos[0].data, "h264", width_px=160, quality=70)
     assert thumb is not None
     jpeg, w, h = thumb
     assert (w, h) == (160, 100)
     image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None
     assert image.shape == (100, 160, 3) and image.std() > 5  # a real picture, not a flat one
-    assert thumbnail_jpeg(packets[1].data, "h264", width_px=160, quality=70) is None  # P frame
+    assert thumbnail_jpeg(videos[1].data, "h264", width_px=160, quality=70) is None  # P frame
     assert thumbnail_jpeg(b"garbage", "h264", width_px=160, quality=70) is None
     ok, still = cv2.imencode(".jpg", np.full((40, 60, 3), 128, np.uint8))
     assert ok

@@ -19,6 +19,7 @@ from field.record.recorder import Recorder, RecorderOptions, SampleQueue
 from field.record.recover import recover
 from field.record.sources.base import SourceSample, StreamInfo
 from shared.archive import ArchiveReader, ArchiveWriter, CompressedVideo, Imu
+from shared.archive.messages import ArchiveMessage
 from shared.errors import DeviceError, InputError, OutputExistsError
 
 IDR = b"\x00\x00\x00\x01\x65"
@@ -132,6 +133,11 @@ class FakeSource:
         return None
 
 
+def _video(message: ArchiveMessage) -> CompressedVideo:
+    assert isinstance(message, CompressedVideo)
+    return message
+
+
 def _options(**kw: Any) -> RecorderOptions:
     base: dict[str, Any] = {"health_interval_s": 0.2, "min_free_mb": 1.0, "flush_interval_s": 0.2}
     base.update(kw)
@@ -181,7 +187,8 @@ def test_full_queue_drops_counts_and_skips_to_key_frame(tmp_path: Path) -> None:
     assert written + sum(report.dropped.values()) == source.produced
     with ArchiveReader(report.files[0]) as reader:
         frames = [
-            int.from_bytes(m.data[5:9], "little") for _, _, m in reader.messages(["/cam0/video"])
+            int.from_bytes(_video(m).data[5:9], "little")
+            for _, _, m in reader.messages(["/cam0/video"])
         ]
     # After a dropped packet the next one written starts a group of pictures (k % 5 == 0).
     for previous, current in itertools.pairwise(frames):

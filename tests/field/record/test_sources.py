@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from field.record.sources import SOURCES, make_source
+from field.record.sources.base import CameraSource
 from field.record.sources.oak import (
     OakOptions,
     OakSource,
@@ -20,7 +21,7 @@ from field.record.sources.oak import (
     imu_samples,
     timedelta_ns,
 )
-from field.record.sources.sim import SimOptions, SimSource, clip_path
+from field.record.sources.sim import SimOptions, clip_path
 from field.record.timing import ClockFit, DeviceClockMapper, is_keyframe
 from shared.archive import CompressedImage, CompressedVideo, Imu
 from shared.errors import DeviceError, InputError
@@ -45,7 +46,7 @@ def test_sim_options_are_checked() -> None:
         SimOptions(width_px=34, height_px=14, render_scale=1)
 
 
-def _collect(source: SimSource, seconds: float) -> list[Any]:
+def _collect(source: CameraSource, seconds: float) -> list[Any]:
     out = []
     end = time.monotonic() + seconds
     while time.monotonic() < end:
@@ -180,6 +181,9 @@ class FakeEncodedFrame:
 
 
 class FakeReport(SimpleNamespace):
+    device: datetime.timedelta
+    host: datetime.timedelta
+
     def getTimestampDevice(self) -> datetime.timedelta:  # noqa: N802
         return self.device
 
@@ -265,8 +269,10 @@ def test_imu_packets_become_imu_messages() -> None:
     assert [s.device_ns for s in samples] == [1_000_000_000, 1_002_500_000]
     assert [s.host_sync_ns for s in samples] == [101_000_000_000, 101_002_500_000]
     assert samples[1].message.stamp_ns - samples[0].message.stamp_ns == 2_500_000
-    np.testing.assert_allclose(samples[1].message.angular_velocity_rad_s, [0.4, 0.5, 0.6])
-    np.testing.assert_allclose(samples[1].message.linear_acceleration_m_s2, [1.0, 0.0, 9.8])
+    imu = samples[1].message
+    assert isinstance(imu, Imu)
+    np.testing.assert_allclose(imu.angular_velocity_rad_s, [0.4, 0.5, 0.6])
+    np.testing.assert_allclose(imu.linear_acceleration_m_s2, [1.0, 0.0, 9.8])
 
 
 def test_oak_without_device_lists_what_was_found() -> None:
