@@ -77,8 +77,8 @@ def render(
         ).reshape(-1)
         image[hit] = sampled[hit]
         depth[hit] = lam[hit]
-    image = image.reshape(cam.height, cam.width) + rng.normal(0, 1.5, (cam.height, cam.width))
-    return np.clip(np.round(image), 0, 255).astype(np.uint8)
+    noisy = image.reshape(cam.height, cam.width) + rng.normal(0, 1.5, (cam.height, cam.width))
+    return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
 
 
 def look_at_wall(x_m: float, distance_m: float, yaw_offset_rad: float) -> FloatArray:

@@ -100,12 +100,12 @@ def test_noise_free_alignment_is_exact_in_4_and_6_dof():
 def test_4dof_beats_6dof_on_gravity_aligned_sessions():
     rng = np.random.default_rng(2)
     truth = _gravity_aligned(-1.1, [5.0, 2.0, -0.3])
-    err4, err6 = [], []
+    diffs4, diffs6 = [], []
     for _ in range(60):
         pairs = _scene(rng, truth, TARGETS, np.deg2rad(0.5), 0.01)
-        err4.append(pose_difference(align_4dof(pairs).a_from_b, truth))
-        err6.append(pose_difference(align_6dof(pairs).a_from_b, truth))
-    err4, err6 = np.array(err4), np.array(err6)
+        diffs4.append(pose_difference(align_4dof(pairs).a_from_b, truth))
+        diffs6.append(pose_difference(align_6dof(pairs).a_from_b, truth))
+    err4, err6 = np.array(diffs4), np.array(diffs6)
     # Target tilt error times the ~20 m lever arm hurts only the 6-DoF fit.
     assert np.sqrt(np.mean(err4[:, 1] ** 2)) < 0.5 * np.sqrt(np.mean(err6[:, 1] ** 2))
     assert np.sqrt(np.mean(err4[:, 0] ** 2)) < np.sqrt(np.mean(err6[:, 0] ** 2))
@@ -118,13 +118,13 @@ def test_4dof_beats_6dof_on_gravity_aligned_sessions():
 def test_4dof_covariance_predicts_its_error():
     rng = np.random.default_rng(3)
     truth = _gravity_aligned(2.5, [1.0, 1.0, 1.0])
-    errors, covs = [], []
+    residuals, covs = [], []
     for _ in range(200):
         pairs = _scene(rng, truth, TARGETS, np.deg2rad(0.5), 0.02)
         result = align_4dof(pairs)
-        errors.append(pose_residuals(result.a_from_b[None], truth)[0])
+        residuals.append(pose_residuals(result.a_from_b[None], truth)[0])
         covs.append(result.covariance)
-    errors = np.array(errors)
+    errors = np.array(residuals)
     predicted = np.mean(covs, axis=0)
     for k in (2, 3, 4, 5):
         assert np.mean(errors[:, k] ** 2) / predicted[k, k] == pytest.approx(1.0, abs=0.3)
@@ -215,7 +215,7 @@ def test_tilt_prior_beats_4dof_and_6dof_when_sessions_are_slightly_tilted():
     the 6-DoF one (which keeps all the noise), and its covariance predicts it."""
     rng = np.random.default_rng(12)
     sigma = np.deg2rad(0.05)
-    errors = {"4": [], "6": [], "prior": []}
+    errors: dict[str, list[np.ndarray]] = {"4": [], "6": [], "prior": []}
     predicted = []
     for _ in range(150):
         truth = _tilted_truth(rng, sigma)

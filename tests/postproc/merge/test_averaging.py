@@ -62,13 +62,13 @@ def test_recovers_truth_and_rejects_planted_outliers(rotation_mean, rule):
 def test_covariance_matches_the_scatter_of_the_mean():
     rng = np.random.default_rng(5)
     rot_sigma, trans_sigma, n = np.deg2rad(1.0), 0.05, 40
-    errors = []
+    residuals = []
     covariances = []
     for _ in range(100):
         result = robust_pose_mean(_noisy(TRUTH, n, rng, rot_sigma, trans_sigma))
-        errors.append(pose_residuals(result.pose[None], TRUTH)[0])
+        residuals.append(pose_residuals(result.pose[None], TRUTH)[0])
         covariances.append(result.covariance)
-    errors = np.array(errors)
+    errors = np.array(residuals)
     predicted = np.mean(covariances, axis=0)
     empirical = errors.T @ errors / len(errors)
     ratio = np.diag(empirical) / np.diag(predicted)

@@ -76,6 +76,7 @@ def test_per_tag_pose_matches_the_truth_without_noise():
     pixels = np.array([camera.project(p @ truth[:3, :3].T + truth[:3, 3]) for p in points])
     observation = GridObservation(0, ids, pixels, points)
     pose = per_tag_target_pose(camera, observation)
+    assert pose is not None
     rot, trans = pose_difference(pose, truth)
     assert rot < 1e-6 and trans < 1e-6
     empty = GridObservation(0, ids[:1], np.full((1, 4, 2), np.nan), points[:1])

@@ -47,7 +47,9 @@ def test_triangulate_views_and_reprojection_behind_camera():
     point = np.array([0.3, -0.2, 3.0])
     poses = [make_pose(np.eye(3), [-x, 0.0, 0.0]) for x in (0.0, 0.3, 0.6)]
     rays = np.array([(point[:2] + p[:2, 3]) / point[2] for p in poses])
-    assert np.allclose(triangulate_views(poses, rays), point)
+    triangulated = triangulate_views(poses, rays)
+    assert triangulated is not None
+    assert np.allclose(triangulated, point)
     behind = reprojection_errors(np.array([[0.0, 0.0, -1.0]]), np.zeros((1, 2)), np.eye(4))
     assert np.isinf(behind[0])
 

@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pytest
@@ -114,7 +115,11 @@ def test_stage_places_sessions_and_writes_every_output(survey, tmp_path):
 def test_paper_method_and_4dof(survey, tmp_path):
     folders, target_paths, truth = _copy(survey, tmp_path)
     expected = _relative_truth(truth, "dive1", "dive2")
-    for method, dof in (("paper", "auto"), ("ours", 4)):
+    cases: tuple[tuple[Literal["ours", "paper"], Literal["auto", 4, 6]], ...] = (
+        ("paper", "auto"),
+        ("ours", 4),
+    )
+    for method, dof in cases:
         out = tmp_path / f"{method}_{dof}"
         document = json.loads(
             run(
