@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import pytest
 
@@ -22,7 +24,7 @@ from shared.trajectory import Trajectory, ate
 from sim.features import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
 
 
-def _run(seq, options: EstimatorOptions | None = None):  # type: ignore[no-untyped-def]
+def _run(seq, options: EstimatorOptions | None = None):
     estimator = SlamEstimator(
         options or EstimatorOptions(),
         focal_px=seq.camera.fx,
@@ -219,7 +221,7 @@ def test_sliding_window_bounds_the_smoother_and_keeps_accuracy() -> None:
     assert backend.stats.retired_keyframes > 0 and backend.stats.window_rebuilds >= 2
     assert backend.stats.pose_graph_loops == 1
     # Frozen landmarks stay in the map.
-    assert result.stats["landmarks"] > backend.active_keyframes
+    assert cast(int, result.stats["landmarks"]) > backend.active_keyframes  # a count
     assert len(result.landmark_ids) == len(set(result.landmark_ids.tolist()))
     truth = Trajectory(seq.frame_stamps_ns, seq.world_from_body)
     se3 = ate(Trajectory(result.frame_stamps_ns, result.session_from_body), truth, align="se3")
@@ -231,7 +233,7 @@ def test_sliding_window_bounds_the_smoother_and_keeps_accuracy() -> None:
 # ------------------------------------------------------------- issue #7: long blind stretches
 
 
-def _blind_after(seq, seeing_s: float):  # type: ignore[no-untyped-def]
+def _blind_after(seq, seeing_s: float):
     """The frames of `seq` with every track removed after `seeing_s` (open water)."""
     start = seq.frames[0].stamp_ns
     return [
@@ -244,7 +246,7 @@ def _blind_after(seq, seeing_s: float):  # type: ignore[no-untyped-def]
     ]
 
 
-def _run_frames(seq, frames, options: EstimatorOptions):  # type: ignore[no-untyped-def]
+def _run_frames(seq, frames, options: EstimatorOptions):
     estimator = SlamEstimator(
         options,
         focal_px=seq.camera.fx,
@@ -257,7 +259,7 @@ def _run_frames(seq, frames, options: EstimatorOptions):  # type: ignore[no-unty
     return estimator, estimator.finish()
 
 
-def _seen_part_ate_m(seq, result, seeing_s: float) -> float:  # type: ignore[no-untyped-def]
+def _seen_part_ate_m(seq, result, seeing_s: float) -> float:
     seen = (seq.frame_stamps_ns - seq.frame_stamps_ns[0]) * 1e-9 <= seeing_s
     truth = Trajectory(seq.frame_stamps_ns[seen], seq.world_from_body[seen])
     estimate = Trajectory(result.frame_stamps_ns[seen], result.session_from_body[seen])
@@ -296,21 +298,21 @@ def test_an_indeterminate_isam2_update_is_recovered_without_a_reset() -> None:
 class _FailingIsam:
     """Stands in for ISAM2: its first update with factors raises `error`, then delegates."""
 
-    def __init__(self, inner, error: RuntimeError) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, inner, error: RuntimeError) -> None:
         self.inner = inner
         self.error: RuntimeError | None = error
 
-    def update(self, *args):  # type: ignore[no-untyped-def]
+    def update(self, *args):
         if args and self.error is not None:
             error, self.error = self.error, None
             raise error
         return self.inner.update(*args)
 
-    def __getattr__(self, name: str):  # type: ignore[no-untyped-def]
+    def __getattr__(self, name: str):
         return getattr(self.inner, name)
 
 
-def _started_backend(keyframes: int):  # type: ignore[no-untyped-def]
+def _started_backend(keyframes: int):
     seq = simulate_sequence(SyntheticOptions(duration_s=6.0, seed=1))
     backend = VisualInertialBackend(
         BackendOptions(),
@@ -366,7 +368,7 @@ def test_other_gtsam_failures_and_failed_recoveries_raise_stage_errors() -> None
     def fail(*args: object) -> None:
         raise RuntimeError("still indeterminate")
 
-    backend._rebuild_after_failure = fail  # type: ignore[method-assign]
+    backend._rebuild_after_failure = fail
     with pytest.raises(StageError, match="even after recovery: still indeterminate"):
         backend.add_keyframe(frame.stamp_ns, seq.imu, frame.track_ids, frame.xy_normalised)
 

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import cv2
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from postproc.slam.frontend import FrontendOptions, KltFrontend, scale_for_width, track_ids_in_both
@@ -30,10 +33,11 @@ def rendered() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], WallRenderer]:
 def _wall_point(T_W_C: np.ndarray, ray_c: np.ndarray, plane_y: float) -> np.ndarray:
     ray_w = T_W_C[:3, :3] @ ray_c
     s = (plane_y - T_W_C[1, 3]) / ray_w[1]
-    return T_W_C[:3, 3] + s * ray_w
+    point: np.ndarray = T_W_C[:3, 3] + s * ray_w
+    return point
 
 
-def test_tracks_follow_the_true_motion(rendered) -> None:  # type: ignore[no-untyped-def]
+def test_tracks_follow_the_true_motion(rendered) -> None:
     stamps, world_from_cam, images, renderer = rendered
     frontend = KltFrontend(FrontendOptions(width_px=480), renderer.camera)
     assert frontend.image_size == (480, 270)
@@ -66,7 +70,7 @@ def test_tracks_follow_the_true_motion(rendered) -> None:  # type: ignore[no-unt
     )
 
 
-def test_rotation_prior_and_rejection(rendered) -> None:  # type: ignore[no-untyped-def]
+def test_rotation_prior_and_rejection(rendered) -> None:
     stamps, world_from_cam, images, renderer = rendered
     frontend = KltFrontend(FrontendOptions(width_px=480, clahe=False), renderer.camera)
     first = frontend.track(int(stamps[0]), images[0])
@@ -103,7 +107,9 @@ def test_colour_input_and_full_width() -> None:
     bgra = np.dstack([grey, grey, grey, np.full_like(grey, 255)])
     np.testing.assert_array_equal(frontend.prepare(bgra), frontend.prepare(colour))
     wide = grey.astype(np.uint16) * 257
-    np.testing.assert_array_equal(frontend.prepare(wide), frontend.prepare(grey))
+    # prepare() takes 16-bit grey too, though its parameter is annotated as 8-bit.
+    wide_image = cast("npt.NDArray[np.uint8]", wide)
+    np.testing.assert_array_equal(frontend.prepare(wide_image), frontend.prepare(grey))
 
 
 def test_undistort_table_matches_the_exact_model() -> None:
@@ -122,7 +128,7 @@ def test_undistort_table_matches_the_exact_model() -> None:
     assert table.normalised(np.zeros((0, 2))).shape == (0, 2)
 
 
-def test_tracks_come_back_after_a_dark_drought(rendered) -> None:  # type: ignore[no-untyped-def]
+def test_tracks_come_back_after_a_dark_drought(rendered) -> None:
     stamps, world_from_cam, images, renderer = rendered
     dark = np.full_like(images[0], 3)  # the light went out: nothing to track for 0.2 s
 

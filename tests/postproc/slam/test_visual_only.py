@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import pytest
 
 from postproc.slam.estimator import EstimatorOptions
@@ -24,7 +26,7 @@ def test_shape_up_to_scale() -> None:
     sim3 = ate(estimate, truth, align="sim3")
     # Measured 1.3 cm over 3.7 m (Sim(3)); the IMU run of such data is about 1 mm (SE(3)).
     assert sim3.rmse_m < 0.05
-    assert result.stats["landmarks"] > 300
+    assert cast(int, result.stats["landmarks"]) > 300  # a count (stats values are a union)
     with pytest.raises(StageError, match="not after"):
         estimator.process(seq.frames[0])
 
