@@ -75,7 +75,7 @@ def target_yaml(tmp_path) -> Path:
 @pytest.fixture
 def image_folder(tmp_path, radtan_views) -> Path:
     _, images, _ = radtan_views
-    folder = tmp_path / "views"
+    folder: Path = tmp_path / "views"
     folder.mkdir()
     for index, image in enumerate(images):
         cv2.imwrite(str(folder / f"view_{index:03d}.png"), image)

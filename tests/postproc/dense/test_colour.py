@@ -124,6 +124,7 @@ def test_correct_fused_uses_the_visibility(tmp_path: Path) -> None:
     water = correct_fused(options, fused, views, tmp_path / "out.ply")
     assert not water.estimated
     out = read_ply(tmp_path / "out.ply")
+    assert out.colors is not None
     np.testing.assert_allclose((out.colors / 255.0) ** 2.2, albedo, atol=0.06)
     (tmp_path / "fused.ply.vis").write_bytes(struct.pack("<Q", 0))
     with pytest.raises(StageError, match="visibility entries"):

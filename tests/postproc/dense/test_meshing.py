@@ -74,6 +74,7 @@ def test_poisson_mesh_of_a_plane(tmp_path: Path) -> None:
     # 2 m at about 2.3 cm nearest-neighbour spacing (jittered 3 cm grid): 2^7 cells.
     assert report.octree_depth == choose_octree_depth(report.extent_m, report.spacing_m) == 7
     surface = read_ply(tmp_path / "mesh.ply")
+    assert surface.faces is not None
     assert report.faces == len(surface.faces) > 500
     assert np.abs(surface.vertices[:, 2]).max() < 0.02
     # Trimmed to the cloud: nothing beyond the square (plus the trim distance).

@@ -3,6 +3,8 @@ reference views."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -55,7 +57,7 @@ def test_row_of_cameras_prefers_the_best_angle() -> None:
 
 def test_forward_motion_and_tiny_baselines_are_rejected() -> None:
     options = NeighbourOptions()
-    common = {"centre_ref_m": np.zeros(3), "axis_ref": np.array([0.0, 0.0, 1.0]),
+    common: dict[str, Any] = {"centre_ref_m": np.zeros(3), "axis_ref": np.array([0.0, 0.0, 1.0]),
               "depth_ref_m": 3.0, "overlap": 1.0, "options": options}  # fmt: skip
     assert pair_score(centre_src_m=np.array([0.0, 0.0, 0.5]), **common) == 0.0  # forward
     assert pair_score(centre_src_m=np.array([0.05, 0.0, 0.0]), **common) == 0.0  # < 2 deg

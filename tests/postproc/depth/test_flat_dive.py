@@ -189,7 +189,8 @@ def _aliased_dive(folder):
 
 def test_an_offset_one_bob_period_away_is_reported(tmp_path, caplog):
     trajectory, dives, offset_s, arrays = _aliased_dive(tmp_path)
-    solution = solve_clock_offset(*arrays[:2], [arrays[2:]], max_offset_s=3600.0)
+    traj_t, traj_z, dive_t, depth = arrays
+    solution = solve_clock_offset(traj_t, traj_z, [(dive_t, depth)], max_offset_s=3600.0)
     ambiguity = solution.ambiguity
     # The coarse search keeps one minimum per sample interval: the alias is not among
     # the candidates, so the assessment alone would call the answer certain.
@@ -197,6 +198,7 @@ def test_an_offset_one_bob_period_away_is_reported(tmp_path, caplog):
     assert abs(solution.sync.time_offset_s - offset_s) < 0.5
     assert ambiguity.near_offset_s == pytest.approx(offset_s + 8.0, abs=0.5)
     assert ambiguity.near_evidence < DepthOptions().min_evidence
+    assert ambiguity.near_depth_offset_m is not None
     assert abs(ambiguity.near_depth_offset_m - solution.sync.depth_offset_m) < 0.05
     with caplog.at_level("WARNING", logger="postproc.depth.stage"):
         doc = json.loads(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from postproc.depth.sync import (
@@ -239,7 +240,9 @@ def test_solve_long_dive_is_unambiguous_and_ignores_the_prior():
     sim = simulate_dive(seed=11, time_offset_s=3600.0 + 450.0, drift_ppm=-20.0, earlier_dives=1)
     traj_t, traj_z, _, _ = relative_inputs(sim)
     reference_s = sim.trajectory.stamps_ns[0] / 1e9
-    dives = [(d.stamps_s - reference_s, d.depth_m) for d in sim.dives]
+    dives: list[tuple[npt.ArrayLike, npt.ArrayLike]] = [
+        (d.stamps_s - reference_s, d.depth_m) for d in sim.dives
+    ]
     prior = ClockPrior(window_s=300.0, zone_step_s=900.0)
     solution = solve_clock_offset(traj_t, traj_z, dives, max_offset_s=15 * 3600.0, prior=prior)
     assert solution.dive == sim.dive_index

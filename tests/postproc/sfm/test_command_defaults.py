@@ -16,9 +16,10 @@ from shared.cli import build_parser
 from shared.errors import InputError
 
 
-def _sfm_parser():  # type: ignore[no-untyped-def]
+def _sfm_parser():
     parser = build_parser("wreckmap-post", DESCRIPTION, COMMAND_MODULES)
     sub = next(a for a in parser._actions if a.dest == "command")
+    assert isinstance(sub.choices, dict)
     sfm = sub.choices["sfm"]
     sfm.format_help()  # the stage's flags are added on first use
     return parser, sfm

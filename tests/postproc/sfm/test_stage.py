@@ -250,6 +250,7 @@ def test_depth_folder_beside_the_slam_folder_sets_the_world(
     )
     sessions = read_inputs([folder])
     assert sessions[0].source == "depth"
+    assert sessions[0].world_from_session is not None
     np.testing.assert_allclose(sessions[0].world_from_session, world_from_session, atol=1e-9)
     # A depth output of another trajectory is refused.
     shifted = type(body)(body.stamps_ns + 123_456_789, body.poses)
@@ -272,6 +273,7 @@ def test_depth_folder_inside_the_slam_folder_sets_the_world(
     write_tum(folder / "depth" / "trajectory_world.tum", body.transformed(world_from_session))
     sessions = read_inputs([folder])
     assert sessions[0].source == "depth"
+    assert sessions[0].world_from_session is not None
     np.testing.assert_allclose(sessions[0].world_from_session, world_from_session, atol=1e-9)
 
 

@@ -189,6 +189,6 @@ def test_matches_of_another_run_are_refused(
 
 
 @pytest.mark.parametrize("kwargs", [{"chunk_images": 0}, {"chunk_pairs": 0}])
-def test_empty_chunks_are_refused(kwargs: dict[str, int]) -> None:
+def test_empty_chunks_are_refused(kwargs: dict[str, Any]) -> None:
     with pytest.raises(ValueError, match="chunk_images and chunk_pairs must be at least 1"):
         SfmOptions(**kwargs)
