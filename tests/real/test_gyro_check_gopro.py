@@ -230,9 +230,11 @@ def test_the_stage_probe_gives_the_same_verdict(
     assert check.turning_pairs == probe.check.turning_pairs
 
 
-def _imu_orientation_keys(path: Path) -> dict[str, tuple[str | None, str | None, object]]:
+def _imu_orientation_keys(
+    path: Path,
+) -> dict[str, tuple[str | None, str | None, tuple[float, ...] | None]]:
     """ACCL/GYRO -> (ORIN, ORIO, MTRX) as the camera's first payload writes them."""
-    found: dict[str, tuple[str | None, str | None, object]] = {}
+    found: dict[str, tuple[str | None, str | None, tuple[float, ...] | None]] = {}
     for _, _, _, payload in iter_gpmf_payloads(read_mp4(path)):
         for stream in payload.streams:
             if stream.key in ("ACCL", "GYRO") and stream.key not in found:
@@ -250,6 +252,7 @@ def test_the_axis_keys_each_generation_writes(shared_data: Path) -> None:
     for key in ("ACCL", "GYRO"):
         orin, orio, matrix = gopro_max[key]
         assert (orin, orio) == ("XzY", "ZXY")
+        assert orin is not None and orio is not None and matrix is not None
         np.testing.assert_array_equal(
             np.reshape(matrix, (3, 3)), cameras.orientation_matrix(orin, orio)
         )

@@ -66,7 +66,7 @@ def build_run(root: Path) -> RunFixture:
 
     rng = np.random.default_rng(7)
     camera = pycolmap.Camera.create_from_model_name(1, "OPENCV", 1.0, WIDTH, HEIGHT)
-    camera.params = np.array(PARAMS)
+    camera.params = np.array(PARAMS)  # type: ignore[assignment]  # pycolmap stubs: a Sequence; an array is taken
     poses = [
         look_at(np.array([x, y, SEABED_Z + 2.5]), np.array([x * 0.5, 0.0, SEABED_Z]),
                 np.array([0.0, 1.0, 0.0]))
@@ -104,7 +104,8 @@ def build_run(root: Path) -> RunFixture:
     write_known_pose_model(
         root / "sfm" / "sparse" / "0", camera_model="OPENCV", camera_params=PARAMS,
         size=(WIDTH, HEIGHT), image_names=names,
-        cams_from_world=[np.linalg.inv(p) for p in poses], points_m=points,
+        cams_from_world=[np.asarray(np.linalg.inv(p), dtype=np.float64) for p in poses],
+        points_m=points,
         observations=observations,
     )  # fmt: skip
     mesh = heightfield_mesh()

@@ -22,7 +22,7 @@ def test_projection_matches_pycolmap() -> None:
     rng = np.random.default_rng(3)
     points = np.column_stack((rng.uniform(-1, 1, (50, 2)), rng.uniform(1.5, 4, 50)))
     camera = pycolmap.Camera.create_from_model_name(1, "OPENCV", 1.0, WIDTH, HEIGHT)
-    camera.params = np.array(PARAMS)
+    camera.params = np.array(PARAMS)  # type: ignore[assignment]  # pycolmap stubs: a Sequence; an array is taken
     ours = project(camera_with(points, points[:, :2], np.eye(4)), points, np.eye(4))
     np.testing.assert_allclose(ours, np.asarray(camera.img_from_cam(points)), atol=1e-9)
 

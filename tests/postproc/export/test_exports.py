@@ -8,6 +8,7 @@ import struct
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -29,7 +30,7 @@ def exported(run_folder: RunFixture, tmp_path_factory: pytest.TempPathFactory) -
     return out
 
 
-def _gltf_json_and_buffer(path: Path) -> tuple[dict, bytes]:
+def _gltf_json_and_buffer(path: Path) -> tuple[dict[str, Any], bytes]:
     """The JSON document and the buffer of a .glb or .gltf, read as the glTF 2.0 spec
     lays them out (GLB: 12-byte header, then JSON and BIN chunks)."""
     data = path.read_bytes()
@@ -47,7 +48,7 @@ def _gltf_json_and_buffer(path: Path) -> tuple[dict, bytes]:
     return document, data[start : start + bin_length]
 
 
-def _accessor(document: dict, blob: bytes, index: int) -> np.ndarray:
+def _accessor(document: dict[str, Any], blob: bytes, index: int) -> np.ndarray:
     """An accessor's values as floats (normalised integers divided by their maximum)."""
     types = {5121: "u1", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
     sizes = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
@@ -71,6 +72,7 @@ def test_gltf_holds_the_full_mesh_upright_with_colours(
     mesh = run_folder.mesh
     # trimesh's loader: the geometry, glTF's y up (world (x, y, z) stored as (x, z, -y)).
     scene = trimesh.load(exported / name, process=False)
+    assert isinstance(scene, trimesh.Scene)
     (loaded,) = scene.geometry.values()
     back = np.asarray(loaded.vertices)
     world = np.column_stack((back[:, 0], -back[:, 2], back[:, 1]))
@@ -83,6 +85,7 @@ def test_gltf_holds_the_full_mesh_upright_with_colours(
     np.testing.assert_array_equal(linear[:, 3], 1.0)
     linear = linear[:, :3]
     srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+    assert mesh.colors is not None
     np.testing.assert_allclose(srgb * 255, mesh.colors, atol=0.05)
     # The spec's alignment rule: vertex attribute elements on 4-byte boundaries.
     sizes = {5121: 1, 5123: 2, 5125: 4, 5126: 4}
@@ -102,12 +105,13 @@ def test_gltf_holds_the_full_mesh_upright_with_colours(
 def test_las_keeps_every_point_to_the_millimetre(
     exported: Path, run_folder: RunFixture, name: str
 ) -> None:
-    import laspy
+    import laspy  # type: ignore[import-untyped]  # laspy ships no type information
 
     las = laspy.read(exported / name)
     points = np.column_stack((las.x, las.y, las.z))
     np.testing.assert_allclose(points, run_folder.fused.vertices, atol=0.0005 + 1e-9)
     rgb = np.column_stack((las.red, las.green, las.blue))
+    assert run_folder.fused.colors is not None
     np.testing.assert_array_equal(rgb, run_folder.fused.colors.astype(np.uint16) * 257)
     if name.endswith(".las"):
         # The public header read by hand (LAS 1.4 spec): scales at byte 131, offsets at
@@ -144,7 +148,9 @@ def test_colmap_text_model_reads_back_as_the_binary_one(
     np.testing.assert_allclose(text.cameras[1].params, PARAMS)
 
 
-def _nerfstudio_pixel(document: dict, frame: dict, point: np.ndarray) -> np.ndarray:
+def _nerfstudio_pixel(
+    document: dict[str, Any], frame: dict[str, Any], point: np.ndarray
+) -> np.ndarray:
     """Project a world point the way nerfstudio's docs define its data: c2w with OpenGL
     axes (camera looks along -z, y up), OPENCV distortion, pixel centres at +0.5."""
     c2w = np.array(frame["transform_matrix"])
@@ -178,6 +184,7 @@ def test_nerfstudio_cameras_project_points_where_colmap_saw_them(
     for image in rec.images.values():
         frame = by_path[f"images/{image.name}"]
         picture = cv2.imread(str(folder / frame["file_path"]))
+        assert picture is not None
         assert picture.shape[:2] == (document["h"], document["w"])
         camera = rec.cameras[image.camera_id]
         for p2d in image.points2D:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -15,12 +16,15 @@ from shared.errors import InputError
 from .conftest import BOX_MAX, BOX_MIN, BOX_TOP_Z, SEABED_Z, TARGET_M, RunFixture
 
 
-def read_geotiff(path: Path) -> tuple[np.ndarray, tuple[float, ...], tuple[float, ...], dict]:
+def read_geotiff(
+    path: Path,
+) -> tuple[np.ndarray, tuple[float, ...], tuple[float, ...], dict[str, Any]]:
     """Pixels, ModelPixelScale, ModelTiepoint and the decoded GeoKeys (tifffile)."""
     import tifffile
 
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
+        assert isinstance(page, tifffile.TiffPage)
         scale = tuple(page.tags["ModelPixelScaleTag"].value)
         tie = tuple(page.tags["ModelTiepointTag"].value)
         keys = dict(tif.geotiff_metadata or {})
@@ -89,6 +93,7 @@ def test_previews_and_summary(ortho_dir: Path) -> None:
     assert summary["elevation_range_m"] == pytest.approx([SEABED_Z, BOX_TOP_Z], abs=1e-5)
     for name in ("ortho.png", "dem.png"):
         image = cv2.imread(str(ortho_dir / name))
+        assert image is not None
         # The raster (404 px wide) plus a 60 px strip for the scale bar underneath.
         assert image.shape[1] == summary["width"]
         assert image.shape[0] == summary["height"] + 60

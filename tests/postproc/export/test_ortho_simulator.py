@@ -40,7 +40,9 @@ def scene() -> WreckScene:
     return build_wreck_scene(seed=3, texel_m=0.02, seafloor_texel_m=0.06)
 
 
-def hatch_runs(dem: np.ndarray, scale: tuple, tie: tuple) -> dict[str, dict[str, float]]:
+def hatch_runs(
+    dem: np.ndarray, scale: tuple[float, ...], tie: tuple[float, ...]
+) -> dict[str, dict[str, float]]:
     """Per hatch, the median length along x and y of the run of cells above mid-height
     through its middle, and the median centre of those runs (metres)."""
     res = scale[0]

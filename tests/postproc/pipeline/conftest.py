@@ -52,7 +52,7 @@ def fake_stages(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, An
     markers.mkdir()
     monkeypatch.setenv("FAKE_STAGE_MARKERS", str(markers))
     sys.modules.pop("fake_stages", None)
-    import fake_stages
+    import fake_stages  # type: ignore[import-not-found]  # on the sys.path entry added above
 
     return dict(fake_stages.STAGES)
 

@@ -18,15 +18,15 @@ from postproc.pipeline.parallel import (
     in_dask_worker,
     make_map,
     process_map,
-    serial_map,
 )
 from shared.errors import InputError
+from shared.progress import serial_map
 
 
 @pytest.fixture
 def helpers(fake_stages: dict[str, Any]) -> Any:
     """The per-item functions of `fake_stages` (importable in spawned processes)."""
-    import fake_stages as module
+    import fake_stages as module  # type: ignore[import-not-found]  # on the conftest's sys.path
 
     return module
 

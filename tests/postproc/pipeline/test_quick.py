@@ -24,8 +24,9 @@ from shared.calibration.cameras import PinholeRadtan
 from shared.calibration.kalibr import CameraCalibration, write_camchain
 from shared.folders import SlamFolder
 from shared.formats.ply import PlyData, ply_bytes
-from shared.formats.tum import Trajectory, write_tum
+from shared.formats.tum import write_tum
 from shared.geometry import look_at
+from shared.trajectory import Trajectory
 
 DEPTH_OF_ORIGIN_M = 12.0
 

@@ -19,7 +19,7 @@ from shared.errors import InputError
 from shared.formats.ply import write_ply
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from report_fixture import build, cube
+from report_fixture import build, cube  # type: ignore[import-not-found]  # on the sys.path above
 
 
 def test_errors_against_truth(tmp_path: Path) -> None:
@@ -66,7 +66,9 @@ def test_report_is_self_contained(tmp_path: Path) -> None:
 
 def test_mesh_render_and_unreadable_mesh(tmp_path: Path) -> None:
     write_ply(tmp_path / "m.ply", cube())
-    assert render_mesh_png(tmp_path / "m.ply")[:4] == b"\x89PNG"
+    png = render_mesh_png(tmp_path / "m.ply")
+    assert png is not None
+    assert png[:4] == b"\x89PNG"
     (tmp_path / "bad.ply").write_bytes(b"not a ply")
     assert render_mesh_png(tmp_path / "bad.ply") is None
 

@@ -5,6 +5,7 @@ distance, nothing is fetched; and the decimation that keeps the page small."""
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from shared.formats.ply import PlyData, write_ply
 from shared.geometry import make_pose, so3_exp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from report_fixture import build
+from report_fixture import build  # type: ignore[import-not-found]  # on the sys.path above
 
 # The fixture's mesh: a 2 m cube centred at (0, 0, -10) moved by H (see report_fixture).
 H = make_pose(so3_exp([0.0, 0.0, -0.4]), [1.0, 1.0, 0.0])
@@ -32,7 +33,8 @@ BACKGROUND = np.array([0x30, 0x26, 0x1D])  # BGR of the viewer's clear colour #1
 
 
 def world(p: list[float]) -> list[float]:
-    return (H[:3, :3] @ np.asarray(p, float) + H[:3, 3]).tolist()
+    moved: list[float] = (H[:3, :3] @ np.asarray(p, float) + H[:3, 3]).tolist()
+    return moved
 
 
 def fine_cube(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -40,7 +42,8 @@ def fine_cube(n: int) -> tuple[np.ndarray, np.ndarray]:
     triangles each, wound outwards)."""
     t = np.linspace(-1.0, 1.0, n + 1)
     a, b = np.meshgrid(t, t, indexing="ij")
-    vertices, faces = [], []
+    vertices: list[np.ndarray] = []
+    faces: list[list[int]] = []
     for axis in range(3):
         for sign in (-1.0, 1.0):
             grid = np.zeros((n + 1, n + 1, 3))
@@ -60,6 +63,7 @@ def fine_cube(n: int) -> tuple[np.ndarray, np.ndarray]:
 def viewer_run(root: Path) -> Path:
     """The report fixture plus what the viewer draws: vertex colours, fused points, a
     target, a camera model (so that coverage runs too)."""
+    project: Path
     project, _ = build(root, rng=np.random.default_rng(5))
     out = root / "out"
     # The same cube as the fixture's, each face a 16 x 16 grid (coverage needs samples).
@@ -97,6 +101,7 @@ def canvas_image(browser: HeadlessChromium) -> np.ndarray:
     x, y, w, h, panel_w, panel_h = (round(v) for v in rect)
     png = browser.screenshot()
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None
     canvas = image[y : y + h, x : x + w].copy()
     canvas[: panel_h + 2, : panel_w + 2] = BACKGROUND
     return canvas
@@ -297,6 +302,6 @@ def test_browser_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None
             b.wait_for("window.neverTrue", timeout_s=0.5)
         with pytest.raises(browser.BrowserError, match=r"page: throw"):
             b.evaluate("throw new Error('x')")
-    monkeypatch.setattr(browser.shutil, "which", lambda name: None)
+    monkeypatch.setattr(shutil, "which", lambda name: None)  # the module browser uses
     with pytest.raises(browser.BrowserError, match="chromium is not installed"):
         HeadlessChromium()
