@@ -174,10 +174,14 @@ def surface_from_mesh(vertices_m: FloatArray, faces: IntArray) -> SurfaceSamples
 
 
 def surface_from_points(
-    points_m: FloatArray, normals: FloatArray | None, *, spacing_m: float
+    points_m: FloatArray, normals: FloatArray | None, *, spacing_m: float | None = None
 ) -> SurfaceSamples:
-    """Points standing for `spacing_m`^2 of surface each (a fused point cloud)."""
+    """Points standing for `spacing_m`^2 of surface each (a fused point cloud, a sparse
+    map); None: each an equal share of a surface about (largest extent)^2 / 2."""
     p = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    if spacing_m is None:
+        extent = float(np.max(np.ptp(p, axis=0))) if len(p) else 1.0
+        spacing_m = extent / np.sqrt(max(2 * len(p), 1))
     n = None
     if normals is not None:
         n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)

@@ -90,10 +90,7 @@ def _surface(out: Path) -> tuple[SurfaceSamples, tuple[Any, Any] | None, str] | 
         keep = subsample_points(len(ply.vertices), max_points=COVERAGE_POINTS)
         points = ply.vertices[keep]
         normals = None if ply.normals is None else ply.normals[keep]
-        extent = float(np.max(np.ptp(points, axis=0))) if len(points) else 1.0
-        # Each kept point stands for an equal share of a surface about extent^2 / 2.
-        spacing = extent / np.sqrt(max(2 * len(points), 1))
-        surface = surface_from_points(points, normals, spacing_m=spacing)
+        surface = surface_from_points(points, normals)
         return surface, None, _relative(fused_path, out)
     return None
 

@@ -215,11 +215,7 @@ def session_coverage(session: QuickSession) -> Any:
     if session.camera is None or len(session.landmarks_m) < 10 or not len(session.world_from_cam):
         return None
     points = session.landmarks_m
-    extent = float(np.max(np.ptp(points, axis=0)))
-    # Each landmark stands for an equal share of a surface about extent^2 / 2.
-    spacing = extent / np.sqrt(max(2 * len(points), 1))
-    surface = surface_from_points(points, facing_normals(points, session.world_from_cam),
-                                  spacing_m=spacing)  # fmt: skip
+    surface = surface_from_points(points, facing_normals(points, session.world_from_cam))
     options = CoverageOptions()
     views = KeyframeViews(
         name=session.name, world_from_cam=session.world_from_cam, camera=session.camera
@@ -323,16 +319,15 @@ def build_quick_page(quick: Project, *, result: Any = None) -> str:
     out = quick.output
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     slam = quick.options_for("slam")
-    body = [
+    head = [
         f"<h1>{html.escape(quick.name)}: quick look</h1>",
         f"<p class='small'>output {html.escape(str(out))}; {now}. SLAM at "
         f"{slam.frontend.width_px} px wide, at most {slam.max_rate_hz:g} images a second, "
         f"a keyframe at least every {slam.estimator.keyframes.max_interval_s:g} s; depth "
         "from the dive computer, coverage from the SLAM landmarks; no merge, SfM or mesh "
         "(the full `wreckmap-post run` gives those).</p>",
-        "<h2>Stage runs</h2>",
-        _status_rows(quick, result),
     ]
+    body = ["<h2>Stage runs</h2>", _status_rows(quick, result)]
     scene = ViewerScene()
     clouds: list[FloatArray] = []
     for spec in quick.sessions:
@@ -387,7 +382,7 @@ def build_quick_page(quick: Project, *, result: Any = None) -> str:
         scene.points_m = np.vstack(clouds)
         scene.points_full_count = len(scene.points_m)
         scene.points_file = "SLAM landmarks"
-        body[2:2] = ["<h2>Sparse map</h2>", viewer_html(scene)]
+        head += ["<h2>Sparse map</h2>", viewer_html(scene)]
     elif len(quick.sessions) > 1:
         body.append(
             "<p class='small'>Each session is drawn in its own frame: the quick look does "
@@ -396,7 +391,7 @@ def build_quick_page(quick: Project, *, result: Any = None) -> str:
     return (
         "<!DOCTYPE html><html><head><meta charset='utf-8'>"
         f"<title>{html.escape(quick.name)}: wreckmap quick look</title><style>{_STYLE}</style>"
-        "</head><body>" + "\n".join(body) + "</body></html>\n"
+        "</head><body>" + "\n".join(head + body) + "</body></html>\n"
     )
 
 
