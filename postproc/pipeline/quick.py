@@ -348,6 +348,12 @@ def build_quick_page(quick: Project, *, result: Any = None) -> str:
         coverage = None
         try:
             coverage = session_coverage(session)
+            if coverage is None:
+                session.notes.append(
+                    f"no coverage map: {len(session.landmarks_m)} landmarks, "
+                    f"{len(session.world_from_cam)} keyframes"
+                    + ("" if session.camera is not None else ", no camera model")
+                )
         except Exception as error:  # a page shows what it can
             session.notes.append(f"coverage failed: {error}")
         if coverage is not None:

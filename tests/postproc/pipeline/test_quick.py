@@ -141,6 +141,11 @@ def test_page_puts_the_map_at_depth_and_finds_the_unfilmed_side(project_file: Pa
     assert "quick look" in text and "http://" not in text and "https://" not in text
     assert text.count("<img") >= 3  # two paths, one coverage map (s2 has no depth: still drawn)
     assert "depth not synced" in text
+    # A session whose map is empty says why it has no coverage map.
+    empty = SlamFolder(quick.output / "sessions" / "s2")
+    empty.map_ply.write_bytes(ply_bytes(PlyData(vertices=np.zeros((0, 3)))))
+    text = write_quick_page(quick).read_text(encoding="utf-8")
+    assert "no coverage map: 0 landmarks, 40 keyframes" in text
     assert (quick.output / "coverage" / "coverage_s1.png").is_file()
 
 
