@@ -136,8 +136,11 @@ def project_file(root: Path, sim: Path, *, euroc: bool) -> Path:
     return path
 
 
-def run_chain(root: Path, sim: Path, *, euroc: bool) -> dict[str, float | str]:
-    """Stage -> seconds (summed over sessions), or a status word when it did not finish."""
+def run_chain(
+    root: Path, sim: Path, *, euroc: bool
+) -> tuple[dict[str, float | str], dict[str, float]]:
+    """Stage -> seconds (summed over sessions), or a status word when it did not finish;
+    and stage -> peak resident memory in MiB (the largest over sessions)."""
     from postproc.pipeline.project import load_project
     from postproc.pipeline.runner import STAMP_NAME, plan, run_project
 
@@ -146,18 +149,21 @@ def run_chain(root: Path, sim: Path, *, euroc: bool) -> dict[str, float | str]:
     describe(project)
     outputs = {t.key: t.out for t in plan(project)[0]}
     per_stage: dict[str, float | str] = {}
+    peaks: dict[str, float] = {}
     for outcome in result.outcomes:
         if outcome.status in ("done", "skipped"):
-            seconds = outcome.seconds
-            if outcome.status == "skipped":  # up to date from an earlier run: its own time
+            seconds, peak = outcome.seconds, outcome.peak_rss_mib
+            if outcome.status == "skipped":  # up to date from an earlier run: its own figures
                 stamp = json.loads((outputs[outcome.key] / STAMP_NAME).read_text())
                 seconds = float(stamp["seconds"])
+                peak = float(stamp.get("peak_rss_mib", 0.0))
+            peaks[outcome.stage] = max(peaks.get(outcome.stage, 0.0), peak)
             previous = per_stage.get(outcome.stage, 0.0)
             if isinstance(previous, float):
                 per_stage[outcome.stage] = previous + seconds
         else:
             per_stage[outcome.stage] = outcome.status
-    return per_stage
+    return per_stage, peaks
 
 
 def run_quick_look(root: Path, sim: Path, *, euroc: bool, width_px: int) -> dict[str, Any]:
@@ -324,6 +330,7 @@ def main(argv: list[str] | None = None) -> int:
 
     lengths = [args.minutes, args.minutes * args.scale_fraction]
     results: list[dict[str, float | str]] = []
+    peaks: list[dict[str, float]] = []
     quick: list[dict[str, Any]] = []
     long_root = args.out / f"{lengths[0]:g}min_{args.width}x{args.height}"
     for index, minutes in enumerate(lengths):
@@ -332,7 +339,9 @@ def main(argv: list[str] | None = None) -> int:
             root.mkdir(parents=True, exist_ok=True)
             make_prefix(long_root / "sim", root / "sim", minutes=minutes)
             print(f"first {minutes:g} min of the {lengths[0]:g}-min dive (EuRoC, linked)")
-            results.append(run_chain(root, root / "sim", euroc=True))
+            times, peak = run_chain(root, root / "sim", euroc=True)
+            results.append(times)
+            peaks.append(peak)
             if args.quick_width:
                 quick.append(run_quick_look(root, root / "sim", euroc=True,
                                             width_px=args.quick_width))  # fmt: skip
@@ -344,7 +353,9 @@ def main(argv: list[str] | None = None) -> int:
             f"simulated {minutes:g} min x {args.sessions} at {args.width}x{args.height}: "
             f"{sim_s:.0f} s"
         )
-        results.append(run_chain(root, root / "sim", euroc=args.euroc))
+        times, peak = run_chain(root, root / "sim", euroc=args.euroc)
+        results.append(times)
+        peaks.append(peak)
         if args.quick_width:
             quick.append(run_quick_look(root, root / "sim", euroc=args.euroc,
                                         width_px=args.quick_width))  # fmt: skip
@@ -354,7 +365,10 @@ def main(argv: list[str] | None = None) -> int:
         f"\nwreckmap-post run, {args.sessions} dive(s) of {lengths[0]:g} min "
         f"({args.width}x{args.height} @ {args.fps:g} Hz); scaling from {lengths[1]:g} min"
     )
-    header = f"{'stage':<8} {'seconds':>9} {'s / video h':>12} {'k':>6} {'45-min dive s':>14}"
+    header = (
+        f"{'stage':<8} {'seconds':>9} {'s / video h':>12} {'k':>6} {'45-min dive s':>14} "
+        f"{'peak MiB':>9} {'short MiB':>10}"
+    )
     print(header)
     stages = ["import", "slam", "depth", "merge", "sfm", "dense"]
     total = 0.0
@@ -375,14 +389,22 @@ def main(argv: list[str] | None = None) -> int:
         at_45 = long * (TARGET_MIN / lengths[0]) ** exponent
         total += long
         total_45 += at_45
+        # Peak resident memory of the stage's run at both lengths: flat over the dive when
+        # the two agree (the import runs as a subprocess: its own peak).
+        peak_long, peak_short = peaks[0].get(stage, math.nan), peaks[1].get(stage, math.nan)
         figures[stage] = {
             "seconds": long,
             "per_video_hour_s": long / video_h,
             "k": k,
             "at_45_min_s": at_45,
+            "peak_rss_mib": peak_long,
+            "short_peak_rss_mib": peak_short,
         }
         k_text = f"{k:.2f}" if math.isfinite(k) else "(1)"  # not measured: taken as linear
-        print(f"{stage:<8} {long:>9.1f} {long / video_h:>12.0f} {k_text:>6} {at_45:>14.0f}")
+        print(
+            f"{stage:<8} {long:>9.1f} {long / video_h:>12.0f} {k_text:>6} {at_45:>14.0f} "
+            f"{peak_long:>9.0f} {peak_short:>10.0f}"
+        )
     print(f"{'total':<8} {total:>9.1f} {total / video_h:>12.0f} {'':>6} {total_45:>14.0f}")
     print(f"45-minute dive, slam to mesh: {total_45 / 3600:.2f} h (goal < 3 h)")
     print(f"load average now: {os.getloadavg()[0]:.1f} (2-core machine: timings rise with it)")

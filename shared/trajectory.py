@@ -17,6 +17,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from shared.clock import seconds_from_ns
 from shared.geometry import interpolate_poses, make_pose, umeyama
 
 FloatArray = npt.NDArray[np.float64]
@@ -80,7 +81,7 @@ class Trajectory:
         """Time from the first to the last pose in seconds (0.0 for fewer than two poses)."""
         if len(self) < 2:
             return 0.0
-        return float(int(self.stamps_ns[-1]) - int(self.stamps_ns[0])) / 1e9
+        return seconds_from_ns(int(self.stamps_ns[-1]) - int(self.stamps_ns[0]))
 
     def path_length_m(self) -> float:
         """Length of the polyline through the positions, metres."""

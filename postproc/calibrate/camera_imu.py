@@ -30,6 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from postproc.calibrate.options import CameraImuOptions as CameraImuOptions
+from shared.clock import seconds_from_ns
 from shared.errors import StageError
 from shared.geometry import project_to_so3, so3_exp, so3_log
 
@@ -103,7 +104,7 @@ class GyroSignal:
         stamps, values = stamps[order], values[order]
         unique = np.concatenate(([True], np.diff(stamps) > 0))
         self.origin_ns = int(origin_ns)
-        self.t_s = (stamps[unique] - self.origin_ns).astype(np.float64) * 1e-9
+        self.t_s = seconds_from_ns(stamps[unique] - self.origin_ns)
         self.rates = values[unique]
         steps = np.diff(self.t_s)
         self.sample_period_s = float(np.median(steps))
@@ -258,8 +259,8 @@ class CameraImuResult:
 
 
 def _camera_rates(intervals: RotationIntervals, origin_ns: int) -> tuple[FloatArray, ...]:
-    start_s = (intervals.start_ns - origin_ns).astype(np.float64) * 1e-9
-    end_s = (intervals.end_ns - origin_ns).astype(np.float64) * 1e-9
+    start_s = seconds_from_ns(intervals.start_ns - origin_ns)
+    end_s = seconds_from_ns(intervals.end_ns - origin_ns)
     rates = so3_log(intervals.start_from_end) / (end_s - start_s)[:, None]
     return start_s, end_s, rates
 

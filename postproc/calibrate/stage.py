@@ -66,7 +66,7 @@ from shared.calibration.kalibr import (
     read_target_yaml,
     write_camchain,
 )
-from shared.clock import NS_PER_S
+from shared.clock import NS_PER_S, seconds_from_ns
 from shared.errors import InputError, StageError
 from shared.folders import CalibrationFolder, rebuild_files, result_stamp
 from shared.fsutil import write_text_atomic
@@ -330,8 +330,8 @@ def _aligned_rates(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     origin = int(intervals.start_ns[0])
     signal = GyroSignal(stamps_ns, gyro, origin)
-    start = (intervals.start_ns - origin) * 1e-9
-    end = (intervals.end_ns - origin) * 1e-9
+    start = seconds_from_ns(intervals.start_ns - origin)
+    end = seconds_from_ns(intervals.end_ns - origin)
     camera_rates = so3_log(intervals.start_from_end) / (end - start)[:, None]
     shift = result.timeshift_cam_imu_s
     imu = signal.mean_rate(start + shift, end + shift) - result.gyro_bias_rad_s

@@ -62,7 +62,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _options_type() -> type:
-    from postproc.depth.stage import DepthOptions
+    from postproc.depth.options import DepthOptions
 
     return DepthOptions
 

@@ -76,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _options_type() -> type:
-    from postproc.merge.stage import MergeOptions
+    from postproc.merge.options import MergeOptions
 
     return MergeOptions
 

@@ -58,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _options_type() -> type:
-    from postproc.sfm.stage import SfmOptions
+    from postproc.sfm.options import SfmOptions
 
     return SfmOptions
 

@@ -90,7 +90,7 @@ def sample_surface(
 def distance_to_mesh(
     points: FloatArray,
     vertices: FloatArray,
-    triangles: IntArray,
+    triangles: npt.NDArray[np.integer],
     *,
     sample_spacing_m: float = 0.05,
     candidates: int = 8,

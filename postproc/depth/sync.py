@@ -69,10 +69,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from postproc.depth.options import QUANTISATION_SIGMA_M as QUANTISATION_SIGMA_M
 
-# Standard deviation of a uniform quantisation error of a 0.1 m depth resolution.
-QUANTISATION_SIGMA_M = 0.1 / math.sqrt(12.0)
+FloatArray = npt.NDArray[np.float64]
 
 
 class SyncError(ValueError):

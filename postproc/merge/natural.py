@@ -34,6 +34,7 @@ from postproc.merge.places import (
     verify_candidate,
     weighted_pose_mean,
 )
+from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -137,7 +138,7 @@ def _match_pair(
         query, reference = fb[q], fa[d]
         evidence.candidates.append((query.stamp_ns, reference.stamp_ns, score))
         if d not in maps:
-            window = int(options.neighbour_window_s * 1e9)
+            window = ns_from_seconds(options.neighbour_window_s)
             neighbours = [
                 (f, pose_a[f.stamp_ns])
                 for f in fa
@@ -187,8 +188,8 @@ def _match_pair(
         return evidence
     chosen = poses[group]
     kept = [v for v, keep in zip(verified, group, strict=True) if keep]
-    times_a = np.array([(v[1] - a.anchor_ns) / 1e9 for v in kept])
-    times_b = np.array([(v[0] - b.anchor_ns) / 1e9 for v in kept])
+    times_a = seconds_from_ns([v[1] - a.anchor_ns for v in kept])
+    times_b = seconds_from_ns([v[0] - b.anchor_ns for v in kept])
     start = weighted_pose_mean(chosen, weights[group])
     floor = np.array(
         [np.deg2rad(options.noise_floor_rotation_deg) ** 2] * 3

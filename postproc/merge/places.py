@@ -41,75 +41,12 @@ import numpy.typing as npt
 
 from postproc.merge.align import tilt_vector_rad
 from postproc.merge.averaging import pose_residuals
+from postproc.merge.options import PlaceOptions as PlaceOptions
 from shared.geometry import invert_pose, make_pose, rotation_angle_rad, so3_exp
 
 FloatArray = npt.NDArray[np.float64]
 UInt8Array = npt.NDArray[np.uint8]
 IntArray = npt.NDArray[np.int64]
-
-
-@dataclass(kw_only=True)
-class PlaceOptions:
-    """Settings of natural-feature merging.
-
-    features_per_keyframe: ORB keypoints per keyframe image; orb_levels: their pyramid
-        levels (`extract_features`).
-    vocabulary_words: words of the k-majority vocabulary (fewer for small surveys: at
-        least 20 sampled descriptors per word); vocabulary_sample: descriptors
-        drawn (over all sessions) to build it; seed: its random generator.
-    candidates_per_query: best-scoring keyframes of the other session kept per query.
-    min_score: smallest TF-IDF cosine score of a candidate (0-1).
-    ratio: Lowe's ratio test of descriptor matches.
-    neighbour_window_s: reference neighbours for triangulation lie within this (s).
-    max_neighbours: the nearest (in time) neighbours triangulated against.
-    min_baseline_m: smallest distance between a reference and a neighbour camera (m).
-    min_parallax_deg: smallest angle between the two rays of a triangulated point.
-    triangulation_reprojection_px: largest reprojection error (pixels) of a triangulated
-        point in either view (loose: neighbouring SLAM poses carry their own noise).
-    ransac_reprojection_px: PnP RANSAC inlier threshold (pixels).
-    min_inliers: fewest PnP inliers of a verified candidate (SVIn2's loop closures: 25).
-    max_tilt_deg: largest relative roll/pitch of the free 6-DoF PnP's `T_Sa_Sb` (a coarse
-        gravity check; the candidate itself is then refined in yaw and translation
-        with roll and pitch from the IMUs, `refine_yaw_translation`).
-    consistency_rotation_deg / consistency_translation_m: two candidates agree when
-        their `T_Sa_Sb` differ by less than both.
-    min_consistent: fewest agreeing verified candidates for a pair to be mergeable.
-    noise_floor_rotation_deg / noise_floor_translation_m: smallest per-candidate
-        noise (1 sigma) of the drift-aware mean.
-    place_gap_s: candidates within this (s) in both sessions film one place and share
-        their error (`candidate_clusters`).
-    rotation_from_images: take each candidate's yaw from the query and reference images
-        (essential matrix) instead of the PnP against the triangulated local map (off:
-        on the simulated wreck it was no better, 0.8 against 0.7 deg per candidate).
-    gravity_sigma_deg: roll/pitch error of each session's gravity alignment (deg, 1
-        sigma per axis) given to the pairs' relative tilt when the merge has no tilt
-        prior of its own (`MergeOptions.tilt_sigma_deg`).
-    """
-
-    features_per_keyframe: int = 1000
-    orb_levels: int = 8
-    vocabulary_words: int = 4000
-    vocabulary_sample: int = 20000
-    seed: int = 0
-    candidates_per_query: int = 3
-    min_score: float = 0.08
-    ratio: float = 0.8
-    neighbour_window_s: float = 3.0
-    max_neighbours: int = 2
-    min_baseline_m: float = 0.1
-    min_parallax_deg: float = 1.0
-    triangulation_reprojection_px: float = 6.0
-    ransac_reprojection_px: float = 4.0
-    min_inliers: int = 25
-    max_tilt_deg: float = 3.0
-    consistency_rotation_deg: float = 1.5
-    consistency_translation_m: float = 0.25
-    min_consistent: int = 3
-    noise_floor_rotation_deg: float = 0.01
-    noise_floor_translation_m: float = 0.002
-    place_gap_s: float = 5.0
-    gravity_sigma_deg: float = 0.1
-    rotation_from_images: bool = False
 
 
 @dataclass

@@ -66,7 +66,7 @@ import dataclasses
 import json
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, cast
 
@@ -92,8 +92,9 @@ from postproc.merge.averaging import (
     robust_pose_mean,
 )
 from postproc.merge.joint import Edge, JointEstimate, solve_joint
-from postproc.merge.places import PairEvidence, PlaceOptions
-from shared.calibration.aprilgrid_detection import DetectionOptions
+from postproc.merge.options import MergeOptions as MergeOptions
+from postproc.merge.places import PairEvidence
+from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import InputError, StageError
 from shared.folders import DepthFolder, MergeFolder, SlamFolder, rebuild, result_stamp
 from shared.fsutil import write_text_atomic
@@ -107,88 +108,6 @@ COVARIANCE_CONVENTION = (
     "6x6 of [dtheta, dt]: R = Exp(dtheta) R_mean, t = t_mean + dt, both in the parent "
     "frame (W); rotation first; radians and metres"
 )
-
-
-@dataclass(kw_only=True)
-class MergeOptions:
-    """Options of the merge stage.
-
-    method: "ours" (whole-grid PnP, robust SE(3) averaging, covariance-weighted
-        alignment) or "paper" (per-tag poses, one-sigma rejection, Euler means).
-    reference: folder name of the session that defines W; None = the first.
-    dof: "auto" (4 when the sessions are depth-fused, else 6), 4 or 6.
-    depth_fused: True: use the depth stage's world trajectories (error if
-        missing); False: ignore them; None: use them when every session has one.
-    min_tags: fewest tags of one target in a keyframe to use the observation.
-    max_reprojection_rms_px: observations whose PnP fits worse are dropped (pixels).
-    max_distance_m: observations of a target further than this are dropped (metres).
-    rotation_mean: "chordal" or "quaternion" (ours).
-    outlier_rule: "mad" or "chi2" (ours; see `averaging.robust_pose_mean`).
-    mad_threshold: robust sigmas beyond which an observation is an outlier.
-    pass_gap_s: keyframes of one target further apart in time than this (s) belong
-        to different passes; a pass shares its SLAM drift, so the covariance of a
-        target's mean counts passes, not keyframes (`averaging.clustered_covariance`).
-    drift_rotation_sigma_deg / drift_translation_sigma_m: the SLAM drift of one
-        pass assumed before the data are seen (1 sigma, degrees and metres).
-    drift_weighting: (ours) weigh each target's observations by the SLAM's drift
-        growth: a random walk from the session's anchor (the first pose of
-        `trajectory.tum`, else of `keyframes.tum`) plus per-keyframe noise, fitted
-        by generalised least squares (`averaging.drift_weighted_mean`); the
-        covariance then includes the drift. Used in sessions where some target
-        was filmed in two passes (`pass_gap_s` apart), which measures the drift.
-        False: the robust means (all passes alike, the overlay of the maps at the
-        targets); where the drift is measured, each target's covariance then grows
-        by how far its local map frame drifts from the session's mean frame
-        (`averaging.local_frame_variance`), so placement weighs targets for the overlay.
-    tilt_sigma_deg: (ours) the roll/pitch error of each session's gravity alignment
-        (degrees, 1 sigma per axis, as the SLAM reports it). None: no prior (dof 6
-        fits the tilt from the targets alone, dof 4 holds it at zero). Given: the
-        placement is a 6-DoF fit whose relative roll and pitch get this prior
-        (`align.align_6dof`), for dof 6 and for "auto" (depth-fused sessions too:
-        the 4-DoF fit is this prior's limit of a perfect gravity alignment); an
-        explicit dof 4 still holds the tilt at zero.
-    drift_rate_rotation_deg_per_sqrt_s / drift_rate_translation_m_per_sqrt_s: the
-        prior drift rate (1 sigma per axis after one second, growing with the square
-        root of time); each session's own rate is measured from the differences
-        between passes over the same target and shrunk toward this prior.
-    camera: the camchain entry that took the keyframes.
-    plot: write the top and side views.
-    detection: tag detection settings.
-    natural_features: (ours) also match every pair of sessions through the structure
-        both filmed and estimate the transforms jointly (`joint.solve_joint`); targets
-        become optional. "auto": only when the targets cannot place every session
-        (none given, or a session shares no target with the others): on the simulated
-        wreck, targets and features together are less accurate than targets alone
-        (0.138 against 0.086 deg, README). True: always. False: targets only, placed
-        session by session (`align.place_sessions`).
-    places: natural-feature settings (`places.PlaceOptions`).
-    depth_sigma_m: (joint) each depth-fused session's absolute-depth error (m, 1 sigma):
-        the prior on the sessions' relative z.
-    """
-
-    method: Literal["ours", "paper"] = "ours"
-    reference: str | None = None
-    dof: Literal["auto", 4, 6] = "auto"
-    depth_fused: bool | None = None
-    min_tags: int = 2
-    max_reprojection_rms_px: float = 2.0
-    max_distance_m: float = 15.0
-    rotation_mean: Literal["chordal", "quaternion"] = "chordal"
-    outlier_rule: Literal["mad", "chi2"] = "mad"
-    mad_threshold: float = 3.5
-    pass_gap_s: float = 5.0
-    drift_rotation_sigma_deg: float = 0.2
-    drift_translation_sigma_m: float = 0.02
-    drift_weighting: bool = True
-    tilt_sigma_deg: float | None = None
-    drift_rate_rotation_deg_per_sqrt_s: float = 0.02
-    drift_rate_translation_m_per_sqrt_s: float = 0.003
-    camera: str = "cam0"
-    plot: bool = True
-    detection: DetectionOptions = field(default_factory=DetectionOptions)
-    natural_features: bool | Literal["auto"] = "auto"
-    places: PlaceOptions = field(default_factory=PlaceOptions)
-    depth_sigma_m: float = 0.02
 
 
 @dataclass
@@ -920,14 +839,14 @@ def _joint_document(joint: JointEstimate | None, pairs: Sequence[PairEvidence]) 
 def _seconds(chosen: Sequence[Observation], anchor_ns: int) -> FloatArray:
     """Seconds (N,) from the session anchor to each observation."""
     stamps = np.array([o.stamp_ns for o in chosen], dtype=np.int64)
-    return np.asarray((stamps - anchor_ns) / 1e9, dtype=np.float64)
+    return seconds_from_ns(stamps - anchor_ns)
 
 
 def pass_labels(stamps_ns: Sequence[int], *, gap_s: float) -> npt.NDArray[np.int64]:
     """Label (N,) each stamp (int64 ns, any order) with its pass: a new pass after a gap."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     order = np.argsort(stamps)
-    gaps = np.diff(stamps[order]) > int(gap_s * 1e9)
+    gaps = np.diff(stamps[order]) > ns_from_seconds(gap_s)
     labels = np.empty(len(stamps), dtype=np.int64)
     labels[order] = np.concatenate(([0], np.cumsum(gaps))) if len(stamps) else []
     return labels

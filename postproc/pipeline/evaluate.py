@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -164,7 +165,7 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
     if project.truth is None:
         return {}
     truth = read_truth(project.truth)
-    shift_ns = round(float(truth["camera"]["timeshift_cam_imu_s"]) * 1e9)
+    shift_ns = ns_from_seconds(float(truth["camera"]["timeshift_cam_imu_s"]))
     cam_from_imu = np.asarray(truth["camera"]["cam_from_imu"], dtype=np.float64)
     imu_from_cam = invert_pose(cam_from_imu)
     folders = RunFolders(project.output, stages)
@@ -198,11 +199,11 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
             dc = entry["clocks"]["dive_computer"]
             ref_cam_s = float(sync["reference_time_s"])
             # dive time - camera time = (dive - true) + (true - camera), at the reference.
-            true_s = ref_cam_s + to_true_ns * 1e-9
+            true_s = ref_cam_s + seconds_from_ns(to_true_ns)
             true_offset = (
-                dc["offset_ns"] * 1e-9
-                + to_true_ns * 1e-9
-                + dc["drift_ppm"] * 1e-6 * (true_s - dc["reference_ns"] * 1e-9)
+                seconds_from_ns(int(dc["offset_ns"]))
+                + seconds_from_ns(to_true_ns)
+                + dc["drift_ppm"] * 1e-6 * (true_s - seconds_from_ns(int(dc["reference_ns"])))
             )
             errors["depth_time_offset_error_s"] = float(sync["time_offset_s"]) - true_offset
             for world_path in (depth.trajectory_world_fused, depth.trajectory_world):

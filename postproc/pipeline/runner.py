@@ -44,6 +44,7 @@ from postproc.pipeline.stages import STAGES, NotPlanned, RunFn, Stage, check_out
 from shared.errors import InputError, WreckmapError
 from shared.folders import jsonable
 from shared.fsutil import atomic_path, write_text_atomic
+from shared.memory import PeakMemory
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +106,7 @@ class TaskOutcome:
     seconds: float = 0.0
     message: str = ""
     worker: str = ""
+    peak_rss_mib: float = 0.0
 
 
 @dataclass
@@ -330,13 +332,14 @@ def run_project(
                 else:
                     outcome = _outcome(task, "done", "", worker=str(report.get("worker", "")))
                     outcome.seconds = float(report.get("seconds", time.monotonic() - started))
+                    outcome.peak_rss_mib = float(report.get("peak_rss_mib", 0.0))
                 outcomes[task.key] = outcome
                 if outcome.status == "failed":
                     _remove_stale(task)
                 bar.update(1)
                 line = f"  {task.key}: {outcome.status}"
                 if outcome.status == "done":
-                    line += f" in {outcome.seconds:.1f} s"
+                    line += f" in {outcome.seconds:.1f} s, peak {outcome.peak_rss_mib:.0f} MiB"
                 if outcome.message:
                     line += f" ({outcome.message})"
                 say(line)
@@ -465,7 +468,11 @@ def execute_task(spec: TaskSpec) -> dict[str, Any]:
         # Done already by an earlier attempt whose result the scheduler lost (its worker
         # died after finishing): rerunning would swap the folder under running readers.
         stamp = json.loads((spec.out / STAMP_NAME).read_text(encoding="utf-8"))
-        return {"seconds": float(stamp.get("seconds", 0.0)), "worker": stamp.get("worker", "")}
+        return {
+            "seconds": float(stamp.get("seconds", 0.0)),
+            "worker": stamp.get("worker", ""),
+            "peak_rss_mib": float(stamp.get("peak_rss_mib", 0.0)),
+        }
     spec.out.parent.mkdir(parents=True, exist_ok=True)
     partial = (
         spec.out.parent / f".{spec.out.name}.partial-{spec.digest[:12]}-{uuid.uuid4().hex[:8]}"
@@ -475,10 +482,20 @@ def execute_task(spec: TaskSpec) -> dict[str, Any]:
     with _task_log(spec.log_path) as task_log:
         task_log.info("%s on %s: digest %s, output %s", spec.key, worker, spec.digest, spec.out)
         try:
-            spec.run(copy.deepcopy(spec.options), spec.inputs, partial, context=spec.context)
+            with PeakMemory() as peak:
+                spec.run(copy.deepcopy(spec.options), spec.inputs, partial, context=spec.context)
             check_output(spec.stage, spec.writes, partial)
             seconds = time.monotonic() - started
-            stamp = {**spec.stamp, "seconds": seconds, "worker": worker, "finished": time.time()}
+            stamp = {
+                **spec.stamp,
+                "seconds": seconds,
+                # The worker process's peak during the task (shared with any task that ran
+                # beside it on the same worker).
+                "peak_rss_mib": round(peak.mib, 1),
+                "peak_rss_since_start": peak.since_start,
+                "worker": worker,
+                "finished": time.time(),
+            }
             write_text_atomic(partial / STAMP_NAME, json.dumps(stamp, indent=2) + "\n")
             with atomic_path(spec.out, overwrite=True) as tmp:
                 partial.rename(tmp)
@@ -490,8 +507,10 @@ def execute_task(spec: TaskSpec) -> dict[str, Any]:
             task_log.exception("%s failed", spec.key)
             shutil.rmtree(partial, ignore_errors=True)
             raise
-        task_log.info("%s done in %.1f s", spec.key, seconds)
-    return {"seconds": seconds, "worker": worker}
+        task_log.info(
+            "%s done in %.1f s, peak resident memory %.0f MiB", spec.key, seconds, peak.mib
+        )
+    return {"seconds": seconds, "worker": worker, "peak_rss_mib": peak.mib}
 
 
 class _ThreadFilter(logging.Filter):

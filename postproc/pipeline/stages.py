@@ -399,7 +399,7 @@ _ENTRIES = (
     ),
     Stage(
         name="depth",
-        options_type=options_class("postproc.depth.stage", "DepthOptions"),
+        options_type=options_class("postproc.depth.options", "DepthOptions"),
         run=run_depth,
         writes=DepthFolder,
         reads=(Read(kind=SlamFolder, name="slam"),),
@@ -410,7 +410,7 @@ _ENTRIES = (
     ),
     Stage(
         name="merge",
-        options_type=options_class("postproc.merge.stage", "MergeOptions"),
+        options_type=options_class("postproc.merge.options", "MergeOptions"),
         run=run_merge,
         writes=MergeFolder,
         reads=(
@@ -423,7 +423,7 @@ _ENTRIES = (
     ),
     Stage(
         name="sfm",
-        options_type=options_class("postproc.sfm.stage", "SfmOptions"),
+        options_type=options_class("postproc.sfm.options", "SfmOptions"),
         run=run_sfm,
         writes=SfmFolder,
         reads=(

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from postproc.sfm.options import FeatureOptions as FeatureOptions
 from shared.errors import StageError
 from shared.fsutil import atomic_path, write_text_atomic
 from shared.progress import MapFn
@@ -32,43 +33,6 @@ from shared.progress import MapFn
 #: A map over workers: `map_fn(function, items)` returns `[function(item) for item in
 #: items]` in order, where `function` is a picklable top-level function and the items
 #: hold paths and options only (a process pool's or a Dask client's map, for example).
-
-
-@dataclass(kw_only=True)
-class FeatureOptions:
-    """Budgets of the feature stage.
-
-    max_num_features: SIFT keypoints kept per image (largest scales first).
-    max_image_size_px: longer image side for extraction (images are scaled down, the
-        keypoints scaled back to full resolution).
-    max_ratio: Lowe's ratio test threshold. max_error_px: RANSAC threshold of the
-        two-view verification (pixels). min_num_inliers: verified pairs need this many.
-    first_octave: first octave of the SIFT pyramid. COLMAP's -1 doubles the image first,
-        which costs about 3/4 of the extraction time and adds the finest features, the
-        first to go when `max_num_features` caps the count (largest scales are kept);
-        None: -1 for small images (longer side below `small_image_px`), else 0.
-    num_threads: worker threads (-1: all cores).
-    """
-
-    # 512 features on images of at most 640 px: with the priors holding the geometry,
-    # bench_sfm.py found the refined poses within 2-3 mm of 1024 features, in about half
-    # the matching and adjustment time; at 480 px one session lost 3-4 mm.
-    max_num_features: int = 512
-    max_image_size_px: int = 640
-    max_ratio: float = 0.8
-    max_error_px: float = 4.0
-    min_num_inliers: int = 15
-    first_octave: int | None = None
-    small_image_px: int = 480
-    num_threads: int = -1
-
-    def __post_init__(self) -> None:
-        if self.max_num_features < 64:
-            raise ValueError(f"max_num_features must be at least 64, got {self.max_num_features}")
-        if self.max_image_size_px < 64:
-            raise ValueError(f"max_image_size_px must be at least 64, got {self.max_image_size_px}")
-        if not 0 < self.max_ratio <= 1:
-            raise ValueError(f"max_ratio must be in (0, 1], got {self.max_ratio}")
 
 
 def first_octave(options: FeatureOptions, longest_side_px: int) -> int:

@@ -25,49 +25,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from postproc.sfm.options import PairOptions as PairOptions
+from shared.clock import ns_from_seconds
+
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: Pair kinds, as stored in `PairSet.kind`.
 SEQUENTIAL, SPATIAL, LOOP, BRIDGING = 0, 1, 2, 3
 KIND_NAMES = ("sequential", "spatial", "loop", "bridging")
-
-
-@dataclass(kw_only=True)
-class PairOptions:
-    """How many and which pairs to match.
-
-    sequential_neighbours: successors in time within a session (offsets 1..n, no gaps).
-    spatial_neighbours: at most this many spatial/loop partners per keyframe.
-    view_distance_m: distance along the optical axis of the point a camera looks at
-        (about the working distance to the wreck), metres.
-    spatial_radius_m: two keyframes are spatial candidates when their viewed points
-        are this close (3D distance, z included), metres.
-    max_view_angle_deg: and their optical axes differ by at most this angle.
-    loop_min_separation_s: keyframes of one session are loop candidates only this far
-        apart in time (closer ones are the sequential matcher's business), seconds.
-    max_bridging_pairs: budget of pairs tying one unplaced session to the placed ones.
-    """
-
-    # 3 + 4 partners (about 4.6 pairs per keyframe) instead of 5 + 6 (7.4): 37 % fewer
-    # pairs to match, 98 % of them verified, the refined poses within a few millimetres.
-    sequential_neighbours: int = 3
-    spatial_neighbours: int = 4
-    view_distance_m: float = 2.0
-    spatial_radius_m: float = 1.5
-    max_view_angle_deg: float = 60.0
-    loop_min_separation_s: float = 10.0
-    max_bridging_pairs: int = 400
-
-    def __post_init__(self) -> None:
-        if self.sequential_neighbours < 0 or self.spatial_neighbours < 0:
-            raise ValueError("sequential_neighbours and spatial_neighbours must be >= 0")
-        if self.spatial_radius_m <= 0 or self.view_distance_m < 0:
-            raise ValueError("spatial_radius_m must be > 0 and view_distance_m >= 0")
-        if not 0 < self.max_view_angle_deg <= 180:
-            raise ValueError("max_view_angle_deg must be in (0, 180]")
-        if self.max_bridging_pairs < 0 or self.loop_min_separation_s < 0:
-            raise ValueError("max_bridging_pairs and loop_min_separation_s must be >= 0")
 
 
 @dataclass
@@ -156,7 +122,7 @@ def spatial_pairs(
     k = min(members.size, 4 * options.spatial_neighbours + options.sequential_neighbours + 1)
     distances, neighbours = tree.query(points, k=k, distance_upper_bound=options.spatial_radius_m)
     min_cos = np.cos(np.deg2rad(options.max_view_angle_deg))
-    min_separation_ns = round(options.loop_min_separation_s * 1e9)
+    min_separation_ns = ns_from_seconds(options.loop_min_separation_s)
     rows: list[tuple[int, int, int]] = []
     for a in range(members.size):
         i = int(members[a])

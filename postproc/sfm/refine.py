@@ -36,7 +36,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -47,6 +47,7 @@ from postproc.sfm.database import (
     pose_prior,
     rigid3d_from_pose,
 )
+from postproc.sfm.options import RefineOptions as RefineOptions
 from shared.errors import StageError
 from shared.geometry import invert_pose, make_pose, umeyama
 
@@ -56,111 +57,6 @@ if TYPE_CHECKING:
 FloatArray = npt.NDArray[np.float64]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(kw_only=True)
-class RefineOptions:
-    """How the prior poses are refined.
-
-    triangulation_max_angle_deg: largest ray angle error to create or continue a track
-        in the first pass, at the prior poses (COLMAP default 2; widened for drifting
-        priors).
-    merge_max_reproj_error_px: reprojection error to merge or complete tracks in the
-        first pass, pixels.
-    rebuild_tracks: run the rebuild pass (tracks rebuilt at the refined poses, see the
-        module docstring).
-    rebuilt_max_angle_deg, rebuilt_merge_max_reproj_error_px: the rebuild pass's
-        thresholds (COLMAP's defaults: 2 degrees, 4 px).
-    first_pass_converged_change_m: with `rebuild_tracks`, the first pass stops once 95 %
-        of the cameras move less than this in a round (or are predicted to), metres:
-        the rebuilt tracks only need poses good to about the rebuild pass's angle at the
-        viewing distance (2 degrees at 2 m is 7 cm), and the rebuild pass converges the
-        rest.
-    filter_max_reproj_error_px: observations above this error after an adjustment are
-        dropped, pixels. filter_min_tri_angle_deg: points seen under a smaller angle too.
-    max_rounds: refinement rounds at most. converged_change_m: stop when 95 % of the
-        camera centres moved less than this in a round, metres.
-    predict_convergence: also stop when the next round is predicted to move them less
-        than that: the moves shrink geometrically from round to round (0.5 m, 5 cm,
-        3 mm on the simulated surveys), so the next is about this one's times the ratio
-        of this one to the last; saves the round that only confirms convergence.
-    skip_redundant_points: adjust first without the 3D points that add little image
-        coverage, then those points alone (COLMAP's option for large adjustments).
-    redundant_min_coverage_gain: the image coverage a point must add to stay in the joint
-        adjustment (COLMAP's default 0.05; larger drops more points).
-    ignore_two_view_tracks: do not create points seen by two keyframes only (weak and
-        numerous; COLMAP's default).
-    ba_gradient_tolerance, ba_function_tolerance, ba_max_iterations: Ceres stopping rules
-        of each adjustment (COLMAP's global-BA defaults).
-    ba_max_direct_sparse_images: up to this many keyframes the adjustment factorises the
-        reduced camera system directly (Ceres sparse Schur); beyond, it iterates (Schur +
-        conjugate gradients). COLMAP switches at 1000 images, a limit set for unordered
-        photo collections; keyframes of a video survey see few others each, so the direct
-        solver stays sparse: on a simulated 10-minute dive (1227 keyframes, 1.6 M
-        residuals) it adjusted 1.3-1.6x faster than the iterative one.
-    robust_prior_loss: Cauchy loss on the position priors (a few wrong priors then
-        cannot pull the model). refine_intrinsics: also adjust focal length and
-        distortion (off: the cameras are calibrated).
-    min_num_matches: pairs with fewer inlier matches are ignored.
-    min_registered_for_placement: keyframes of an unplaced session that must register
-        before its `T_W_S` is fitted.
-    mapper: "prior" (triangulate + BA from the priors), "incremental" (COLMAP's
-        incremental mapper with pose priors, from scratch), or "auto" (prior, and the
-        incremental mapper when fewer than `min_registered_fraction` of the placed
-        keyframes end up in the model).
-    num_threads: solver threads (-1: all cores). random_seed: for RANSAC (-1: random).
-    """
-
-    triangulation_max_angle_deg: float = 8.0
-    merge_max_reproj_error_px: float = 8.0
-    rebuild_tracks: bool = True
-    rebuilt_max_angle_deg: float = 2.0
-    rebuilt_merge_max_reproj_error_px: float = 4.0
-    first_pass_converged_change_m: float = 0.05
-    filter_max_reproj_error_px: float = 4.0
-    filter_min_tri_angle_deg: float = 1.5
-    max_rounds: int = 6
-    converged_change_m: float = 0.01
-    predict_convergence: bool = True
-    skip_redundant_points: bool = True
-    redundant_min_coverage_gain: float = 0.05
-    ignore_two_view_tracks: bool = True
-    ba_gradient_tolerance: float = 1.0
-    ba_function_tolerance: float = 0.0
-    ba_max_iterations: int = 50
-    ba_max_direct_sparse_images: int = 8000
-    robust_prior_loss: bool = True
-    refine_intrinsics: bool = False
-    min_num_matches: int = 15
-    min_registered_for_placement: int = 5
-    mapper: Literal["prior", "incremental", "auto"] = "auto"
-    min_registered_fraction: float = 0.5
-    num_threads: int = -1
-    random_seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.mapper not in ("prior", "incremental", "auto"):
-            raise ValueError(
-                f"mapper must be 'prior', 'incremental' or 'auto', got {self.mapper!r}"
-            )
-        if self.max_rounds < 1:
-            raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds}")
-        if self.ba_max_direct_sparse_images < 0:
-            raise ValueError(
-                "ba_max_direct_sparse_images must be 0 or more, got "
-                f"{self.ba_max_direct_sparse_images}"
-            )
-        thresholds = (
-            self.triangulation_max_angle_deg,
-            self.merge_max_reproj_error_px,
-            self.rebuilt_max_angle_deg,
-            self.rebuilt_merge_max_reproj_error_px,
-            self.filter_max_reproj_error_px,
-            self.converged_change_m,
-            self.first_pass_converged_change_m,
-        )
-        if not all(value > 0 for value in thresholds):
-            raise ValueError("triangulation, filter and convergence thresholds must be positive")
 
 
 @dataclass

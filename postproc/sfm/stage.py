@@ -34,7 +34,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,6 @@ import numpy.typing as npt
 
 from postproc.sfm.database import KeyframeSet, write_database
 from postproc.sfm.features import (
-    FeatureOptions,
     extract_features,
     extract_features_mapped,
     match_pairs,
@@ -52,8 +51,9 @@ from postproc.sfm.features import (
     write_pairs_file,
 )
 from postproc.sfm.inputs import SessionInput, read_inputs
-from postproc.sfm.pairs import PairOptions, select_pairs
-from postproc.sfm.refine import RefineOptions, RefineResult, refine
+from postproc.sfm.options import SfmOptions as SfmOptions
+from postproc.sfm.pairs import select_pairs
+from postproc.sfm.refine import RefineResult, refine
 from shared.calibration.cameras import CameraModel
 from shared.errors import InputError, StageError
 from shared.folders import MergeFolder, SfmFolder, SlamFolder, rebuild, result_stamp
@@ -69,41 +69,6 @@ log = logging.getLogger(__name__)
 # Scratch folders of the worker tasks (removed once imported into the database).
 _FEATURES_DIR = "features_chunks"
 _MATCHES_DIR = "matches_chunks"
-
-
-@dataclass(kw_only=True)
-class SfmOptions:
-    """Options of the SfM stage.
-
-    features, pairs, refine: see `FeatureOptions`, `PairOptions`, `RefineOptions`.
-    prior_sigma_m: fixed one-sigma error of every position prior, metres; None derives
-        it per keyframe as sqrt(floor^2 + sigma(T_W_S)^2 + (drift * distance)^2), where
-        distance is the path length from the session's first keyframe.
-    prior_sigma_floor_m: the floor of the derived sigma, metres (a prior that is too
-        tight keeps the SLAM drift; one that is loose only fixes the gauge).
-    prior_drift_per_m: drift rate assumed when the SLAM's stats.json gives none.
-    copy_images: copy keyframes into images/ instead of linking them.
-    chunk_images: keyframes per extraction task when `run` is given a `map_fn`.
-    chunk_pairs: image pairs per matching task when `run` is given a `map_fn`.
-    """
-
-    features: FeatureOptions = field(default_factory=FeatureOptions)
-    pairs: PairOptions = field(default_factory=PairOptions)
-    refine: RefineOptions = field(default_factory=RefineOptions)
-    prior_sigma_m: float | None = None
-    prior_sigma_floor_m: float = 0.1
-    prior_drift_per_m: float = 0.05
-    copy_images: bool = False
-    chunk_images: int = 32
-    chunk_pairs: int = 400
-
-    def __post_init__(self) -> None:
-        if self.chunk_images < 1 or self.chunk_pairs < 1:
-            raise ValueError("chunk_images and chunk_pairs must be at least 1")
-        if self.prior_sigma_m is not None and not self.prior_sigma_m > 0:
-            raise ValueError(f"prior_sigma_m must be positive, got {self.prior_sigma_m}")
-        if not self.prior_sigma_floor_m > 0 or self.prior_drift_per_m < 0:
-            raise ValueError("prior_sigma_floor_m must be > 0 and prior_drift_per_m >= 0")
 
 
 def prior_sigmas_m(

@@ -67,6 +67,7 @@ from postproc.slam.options import GRAVITY_M_S2 as GRAVITY_M_S2
 from postproc.slam.options import BackendOptions as BackendOptions
 from postproc.slam.types import FloatArray, ImuSamples, IntArray
 from shared.calibration.kalibr import ImuNoise
+from shared.clock import seconds_from_ns
 from shared.errors import StageError
 from shared.geometry import invert_pose, make_pose
 
@@ -173,7 +174,7 @@ def imu_intervals(
     mid = ((cuts[:-1] - start_ns).astype(np.float64) + (cuts[1:] - start_ns).astype(np.float64)) / 2
     accel = np.column_stack([np.interp(mid, rel, imu.accel_m_s2[lo:hi, i]) for i in range(3)])
     gyro = np.column_stack([np.interp(mid, rel, imu.gyro_rad_s[lo:hi, i]) for i in range(3)])
-    dt = np.diff(cuts).astype(np.float64) * 1e-9
+    dt = seconds_from_ns(np.diff(cuts))
     return accel, gyro, dt
 
 
@@ -450,7 +451,7 @@ class VisualInertialBackend:
                     gtsam.noiseModel.Isotropic.Sigma(3, o.zero_velocity_sigma_m_s),
                 )
             )
-            span_s = (stamp_ns - prev_stamp) * 1e-9
+            span_s = seconds_from_ns(stamp_ns - prev_stamp)
             graph.add(
                 gtsam.BetweenFactorPose3(
                     X(k - 1),

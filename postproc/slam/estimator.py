@@ -49,10 +49,14 @@ from postproc.slam.loop_closure import Descriptors, LoopDetector
 from postproc.slam.options import EstimatorOptions as EstimatorOptions
 from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
 from shared.calibration.kalibr import ImuNoise
+from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import StageError
 from shared.geometry import invert_pose, make_pose, so3_exp, so3_log
 
 LOG = logging.getLogger(__name__)
+
+# What one entry of the estimator's stats (stats.json) holds.
+StatValue = float | int | str | bool | list[float | None] | dict[str, int] | None
 
 
 @dataclass
@@ -79,7 +83,7 @@ class SlamResult:
     keyframe_session_from_cam: FloatArray
     landmark_ids: IntArray
     landmarks_s: FloatArray
-    stats: dict[str, float | int | str | bool | list[float | None] | dict[str, int] | None]
+    stats: dict[str, StatValue]
 
 
 @dataclass
@@ -127,7 +131,7 @@ class SlamEstimator:
         # Loops from a keyframe to one of a finished segment: (old, new, T_Bold_Bnew).
         self._segment_loops: list[tuple[int, int, FloatArray]] = []
         self._init_failures: list[str] = []
-        self._shift_ns = round(options.timeshift_cam_imu_s * 1e9)
+        self._shift_ns = ns_from_seconds(options.timeshift_cam_imu_s)
         self._frame_stamps: list[int] = []
         self._keyframe_frame_index: list[int] = []
         self._last_kf_xy: dict[int, FloatArray] = {}
@@ -178,7 +182,7 @@ class SlamEstimator:
             return decision
         blind = len(frame.track_ids) == 0
         if blind and self._last_kf_blind and self.backend.num_keyframes:
-            since_s = (imu_ns - self._last_kf_imu_ns) * 1e-9
+            since_s = seconds_from_ns(imu_ns - self._last_kf_imu_ns)
             if since_s < self.options.blind_keyframe_interval_s:
                 self._blind_skipped += 1
                 return KeyframeDecision(False, decision.overlap, decision.match_ratio, "blind")
@@ -241,7 +245,7 @@ class SlamEstimator:
                 counters=_backend_counters(old),
             )
         )
-        when_s = (keyframe.imu_ns - self._imu_start_ns) * 1e-9
+        when_s = seconds_from_ns(keyframe.imu_ns - self._imu_start_ns)
         self._segment_failures.append(f"{when_s:.2f} s: {error}")
         LOG.warning(
             "smoother failed %.2f s into the IMU data (%s); starting map segment %d there",
@@ -340,7 +344,7 @@ class SlamEstimator:
             started = self._start_from_buffer(force=force)
         except (StageError, RuntimeError) as error:  # gtsam raises RuntimeError
             dropped = self._buffer.pop(0)
-            when_s = (dropped.imu_ns - self._imu_start_ns) * 1e-9
+            when_s = seconds_from_ns(dropped.imu_ns - self._imu_start_ns)
             self._init_failures.append(f"{when_s:.2f} s: {error}")
             LOG.warning(
                 "initialisation %.2f s into the IMU data failed (%s); retrying at the "
@@ -366,7 +370,7 @@ class SlamEstimator:
         """Start the backend at the first buffered keyframe if the start is known."""
         o = self.options
         first = self._buffer[0]
-        span_s = (self._buffer[-1].imu_ns - first.imu_ns) * 1e-9
+        span_s = seconds_from_ns(self._buffer[-1].imu_ns - first.imu_ns)
         found = self._last_rest(first.imu_ns)
         if found is not None and found[1] >= first.imu_ns:
             # The IMU cannot tell rest from a smooth glide at constant velocity: the
@@ -388,7 +392,7 @@ class SlamEstimator:
             R_S_B0, velocity, sigma_v = self._propagate_rest(
                 rest, rest_end_ns, first.imu_ns, accel_bias
             )
-            before_s = max(first.imu_ns - rest_end_ns, 0) * 1e-9
+            before_s = seconds_from_ns(max(first.imu_ns - rest_end_ns, 0))
             self.init_report = {
                 "init": "at rest (still IMU)"
                 if before_s == 0
@@ -463,10 +467,10 @@ class SlamEstimator:
         """The latest still IMU window ending within `rest_lookback_s` before `first_ns`
         (or reaching `rest_window_s` past it), with its end (IMU clock); None if none."""
         o = self.options
-        w_ns = round(o.rest_window_s * 1e9)
+        w_ns = ns_from_seconds(o.rest_window_s)
         step_ns = 100_000_000
         end_ns = min(first_ns + w_ns, self._imu_end_ns)
-        while end_ns >= first_ns - round(o.rest_lookback_s * 1e9):
+        while end_ns >= first_ns - ns_from_seconds(o.rest_lookback_s):
             rest = imu_stillness(
                 self.imu,
                 end_ns - w_ns,
@@ -505,7 +509,7 @@ class SlamEstimator:
         yaw = float(np.arctan2(axis[1], axis[0]))
         c, s_ = np.cos(-yaw), np.sin(-yaw)
         R_z = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-        dt_s = (first_ns - rest_end_ns) * 1e-9
+        dt_s = seconds_from_ns(first_ns - rest_end_ns)
         sigma = o.rest_velocity_sigma_m_s + o.rest_velocity_growth_m_s2 * dt_s
         return R_z @ R, R_z @ np.asarray(nav.velocity()), sigma
 
@@ -624,7 +628,7 @@ class SlamEstimator:
         for seg in self._segments:
             for key, value in seg.counters.items():
                 counters[key] += value
-        stats: dict[str, float | int | str | bool | list[float | None] | dict[str, int] | None] = {
+        stats: dict[str, StatValue] = {
             "frames": len(self._frame_stamps) - first_frame,
             "frames_before_start": first_frame,
             "keyframes": len(states),

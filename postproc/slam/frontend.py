@@ -40,6 +40,7 @@ import numpy.typing as npt
 from postproc.slam.options import FrontendOptions as FrontendOptions
 from postproc.slam.types import FloatArray, FrameTracks, IntArray
 from shared.calibration.cameras import CameraModel
+from shared.clock import seconds_from_ns
 
 Image = npt.NDArray[np.uint8]
 
@@ -140,13 +141,18 @@ class KltFrontend:
         """The prepared (grey, resized, equalised) image of the last `track` call."""
         return self._previous
 
-    def prepare(self, image: Image) -> Image:
-        """Grey, resized and equalised image the tracker works on."""
+    def prepare(self, image: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]) -> Image:
+        """Grey, resized and equalised image the tracker works on (from 8-bit or 16-bit
+        grey, BGR or BGRA)."""
         if image.ndim == 3:
             code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-            image = cast(Image, cv2.cvtColor(image, code))
+            image = cast(npt.NDArray[np.uint8] | npt.NDArray[np.uint16], cv2.cvtColor(image, code))
         # 16-bit PNGs (some dataset tools write them): keep the high byte.
-        grey = (image >> 8).astype(np.uint8) if image.dtype == np.uint16 else image
+        grey: Image = (
+            (image >> 8).astype(np.uint8)
+            if image.dtype == np.uint16
+            else image.astype(np.uint8, copy=False)
+        )
         if grey.shape[1] != self.camera.width or grey.shape[0] != self.camera.height:
             grey = cast(
                 Image,
@@ -159,7 +165,11 @@ class KltFrontend:
         return grey
 
     def track(
-        self, stamp_ns: int, image: Image, *, cam_rotation_now_from_prev: FloatArray | None = None
+        self,
+        stamp_ns: int,
+        image: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
+        *,
+        cam_rotation_now_from_prev: FloatArray | None = None,
     ) -> FrameTracks:
         """Track into `image` (recorded size, grey or BGR); returns the surviving features.
 
@@ -203,7 +213,7 @@ class KltFrontend:
             anchor is not None
             and self._now_from_anchor is not None
             and len(self._points) < o.drought_min_tracks
-            and (stamp_ns - anchor[1]) * 1e-9 <= o.drought_max_s
+            and seconds_from_ns(stamp_ns - anchor[1]) <= o.drought_max_s
             and anchor[0] is not self._previous
         ):
             image, _, points, ids = anchor

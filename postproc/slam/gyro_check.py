@@ -68,6 +68,7 @@ import numpy.typing as npt
 
 from postproc.slam.options import GyroCheckOptions as GyroCheckOptions
 from postproc.slam.types import FloatArray, ImuSamples, IntArray
+from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.geometry import so3_log
 
 
@@ -186,13 +187,13 @@ def _gyro_angles(
     Cumulative trapezoid integral of the gyro, linearly interpolated at the
     ends; intervals outside the IMU span give NaN.
     """
-    t = (imu.stamps_ns - imu.stamps_ns[0]).astype(np.float64) * 1e-9
+    t = seconds_from_ns(imu.stamps_ns - imu.stamps_ns[0])
     w = imu.gyro_rad_s - bias_rad_s
     cumulative = np.vstack(
         [np.zeros(3), np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t)[:, None], axis=0)]
     )
-    a = (starts_ns - imu.stamps_ns[0]).astype(np.float64) * 1e-9
-    b = (ends_ns - imu.stamps_ns[0]).astype(np.float64) * 1e-9
+    a = seconds_from_ns(starts_ns - imu.stamps_ns[0])
+    b = seconds_from_ns(ends_ns - imu.stamps_ns[0])
     out = np.column_stack(
         [np.interp(b, t, cumulative[:, i]) - np.interp(a, t, cumulative[:, i]) for i in range(3)]
     )
@@ -212,7 +213,7 @@ def _best_shift(
     shifts = np.arange(-options.max_shift_s, options.max_shift_s + 1e-12, options.shift_step_s)
     best_shift, best_corr = 0.0, -np.inf
     for shift in shifts:
-        shift_ns = round(shift * 1e9)
+        shift_ns = ns_from_seconds(shift)
         gyro = _gyro_angles(imu, starts + shift_ns, ends + shift_ns, np.zeros(3))
         ok = np.all(np.isfinite(gyro), axis=1)
         if ok.sum() < 3:
@@ -286,7 +287,7 @@ def check_gyro_against_images(
     nan = float("nan")
     best_shift, best_corr = _best_shift(imu, starts, ends, np.linalg.norm(visual, axis=1), options)
     at_bound = bool(abs(abs(best_shift) - options.max_shift_s) < 0.5 * options.shift_step_s)
-    shift_ns = round(best_shift * 1e9)
+    shift_ns = ns_from_seconds(best_shift)
     gyro = (
         _gyro_angles(imu, starts + shift_ns, ends + shift_ns, bias)
         if len(starts)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from postproc.slam.types import FloatArray, ImuSamples
+from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import StageError
 from shared.geometry import so3_exp
 
@@ -61,7 +62,7 @@ def mean_specific_force(imu: ImuSamples, start_ns: int, window_s: float) -> Floa
     about 1 m/s^2 of gravity into the horizontal). The window is shortened to
     the IMU data available. Raises StageError when no IMU sample follows `start_ns`.
     """
-    window_ns = round(window_s * 1e9)
+    window_ns = ns_from_seconds(window_s)
     end_ns = min(start_ns + window_ns, int(imu.stamps_ns[-1])) if len(imu) else start_ns
     if len(imu) < 2 or start_ns < imu.stamps_ns[0] or end_ns <= start_ns:
         raise StageError(
@@ -138,7 +139,7 @@ def imu_stillness(
     if n < 3:
         return ImuStillness(False, 0.0, np.zeros(3), np.inf, np.zeros(3), np.inf, np.inf)
     times = stamps[inside]
-    duration_s = float(times[-1] - times[0]) * 1e-9
+    duration_s = seconds_from_ns(int(times[-1] - times[0]))
     gyro = imu.gyro_rad_s[inside]
     accel = imu.accel_m_s2[inside]
     gyro_mean = gyro.mean(axis=0)

@@ -24,6 +24,7 @@ import numpy as np
 
 from postproc.slam.options import KeyframeOptions as KeyframeOptions
 from postproc.slam.types import FloatArray, FrameTracks, IntArray
+from shared.clock import seconds_from_ns
 
 
 def _hull_area(points: FloatArray) -> float:
@@ -56,7 +57,7 @@ class KeyframeSelector:
         if self._last_ids is None or self._last_stamp_ns is None:
             decision = KeyframeDecision(True, 0.0, 0.0, "first frame")
         else:
-            dt_s = (frame.stamp_ns - self._last_stamp_ns) * 1e-9
+            dt_s = seconds_from_ns(frame.stamp_ns - self._last_stamp_ns)
             shared = np.isin(frame.track_ids, self._last_ids)
             n = len(frame.track_ids)
             match_ratio = float(shared.sum()) / n if n else 0.0

@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from postproc.slam.options import LoopClosureOptions as LoopClosureOptions
 from postproc.slam.types import FloatArray, IntArray
+from shared.clock import ns_from_seconds
 from shared.geometry import invert_pose, make_pose, so3_exp
 
 Descriptors = npt.NDArray[np.uint8]
@@ -113,7 +114,7 @@ class LoopDetector:
         if current is None:
             return []
         T_new = session_from_body[index] @ self.imu_from_cam
-        gap_ns = round(o.min_time_gap_s * 1e9)
+        gap_ns = ns_from_seconds(o.min_time_gap_s)
         scored = []
         for j, features in self._keyframes.items():
             if j >= index or current.stamp_ns - features.stamp_ns < gap_ns:

@@ -81,7 +81,7 @@ from shared.calibration.kalibr import (
     write_camchain,
     write_imu_yaml,
 )
-from shared.clock import NS_PER_S
+from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.errors import InputError, StageError
 from shared.folders import SlamFolder, rebuild, result_stamp
 from shared.formats.ply import PlyData, ply_bytes
@@ -121,7 +121,7 @@ def _gyro_rotation(
 ) -> FloatArray | None:
     """`R_Cnow_Cprev` between two images from the gyro (None when the IMU does not cover)."""
     imu = estimator.imu
-    shift = round(calibration.timeshift_cam_imu_s * 1e9)
+    shift = ns_from_seconds(calibration.timeshift_cam_imu_s)
     a, b = t0_ns + shift, t1_ns + shift
     if a < imu.stamps_ns[0] or b > imu.stamps_ns[-1] or b <= a:
         return None
@@ -155,7 +155,7 @@ def probe_gyro(
     try:
         for frame in frames:
             first = frame.stamp_ns if first is None else first
-            if (frame.stamp_ns - first) * 1e-9 > options.probe_s:
+            if seconds_from_ns(frame.stamp_ns - first) > options.probe_s:
                 break
             tracks = frontend.track(frame.stamp_ns, frame.image)
             if previous is not None:
@@ -323,7 +323,7 @@ def _build(
         total = min(total, options.max_frames)
     tracking_failures = 0
     coverage = (
-        ImuCoverage.of(source.imu, round(calibration.timeshift_cam_imu_s * 1e9))
+        ImuCoverage.of(source.imu, ns_from_seconds(calibration.timeshift_cam_imu_s))
         if options.use_imu
         else None
     )
@@ -370,7 +370,7 @@ def _build(
         result = gravity_and_scale(
             result,
             source.imu,
-            shift_ns=round(calibration.timeshift_cam_imu_s * 1e9),
+            shift_ns=ns_from_seconds(calibration.timeshift_cam_imu_s),
             gravity_m_s2=options.estimator.backend.gravity_m_s2,
         )
     if check is not None:
@@ -391,7 +391,7 @@ def _build(
         _check_speed(result, options.max_speed_m_s, source.name)
     run_time_s = time.monotonic() - started
     cpu_time_s = time.process_time() - started_cpu
-    duration_s = (last_stamp - (first_stamp or last_stamp)) * 1e-9
+    duration_s = seconds_from_ns(last_stamp - (first_stamp or last_stamp))
     _write_result(
         folder,
         result,
@@ -469,8 +469,8 @@ class ImuCoverage:
                 name,
                 self.inside,
                 self.inside + self.before + self.after,
-                max(self.start_cam_ns - (self.first_frame_ns or 0), 0) * 1e-9,
-                max((self.last_frame_ns or 0) - self.end_cam_ns, 0) * 1e-9,
+                seconds_from_ns(max(self.start_cam_ns - (self.first_frame_ns or 0), 0)),
+                seconds_from_ns(max((self.last_frame_ns or 0) - self.end_cam_ns, 0)),
             )
 
     def as_stats(self) -> dict[str, float | int]:
@@ -481,8 +481,8 @@ class ImuCoverage:
             "frames_before_imu": self.before,
             "frames_after_imu": self.after,
             "frames_in_imu_span": self.inside,
-            "imu_starts_after_first_frame_s": max(self.start_cam_ns - first, 0) * 1e-9,
-            "imu_ends_before_last_frame_s": max(last - self.end_cam_ns, 0) * 1e-9,
+            "imu_starts_after_first_frame_s": seconds_from_ns(max(self.start_cam_ns - first, 0)),
+            "imu_ends_before_last_frame_s": seconds_from_ns(max(last - self.end_cam_ns, 0)),
         }
 
 
@@ -538,7 +538,8 @@ def prefetch(items: Iterable[T], depth: int = 4) -> Iterator[T]:
 
 def keyframe_speeds_m_s(stamps_ns: IntArray, poses: FloatArray) -> FloatArray:
     """Speeds (m/s) between consecutive poses (N, 4, 4) at `stamps_ns` (int64 ns)."""
-    dt_s = np.diff(np.asarray(stamps_ns, dtype=np.int64)).astype(np.float64) * 1e-9
+    stamps: IntArray = np.asarray(stamps_ns, dtype=np.int64)
+    dt_s = seconds_from_ns(stamps[1:] - stamps[:-1])
     step_m = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     speeds: FloatArray = step_m / np.maximum(dt_s, 1e-9)
     return speeds

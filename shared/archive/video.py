@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 
 from shared.archive.messages import CompressedVideo
 from shared.archive.reader import ArchiveReader
+from shared.clock import NS_PER_S
 from shared.errors import InputError
 
 KEYFRAME_METADATA = "video_keyframes"
@@ -221,7 +222,7 @@ class SessionVideo:
                 context = self._decoder(message.format)
             packet = av.Packet(message.data)
             packet.pts = log_time
-            packet.time_base = Fraction(1, 1_000_000_000)
+            packet.time_base = Fraction(1, NS_PER_S)
             pending[log_time] = (message.stamp_ns, key)
             try:
                 decoded = context.decode(packet)

@@ -56,6 +56,26 @@ class CameraModel(Protocol):
         """Image height in pixels."""
         ...
 
+    @property
+    def fx(self) -> float:
+        """Focal length along x, in pixels."""
+        ...
+
+    @property
+    def fy(self) -> float:
+        """Focal length along y, in pixels."""
+        ...
+
+    @property
+    def cx(self) -> float:
+        """Principal point x, in pixels."""
+        ...
+
+    @property
+    def cy(self) -> float:
+        """Principal point y, in pixels."""
+        ...
+
     def project(self, points_cam: ArrayLike) -> FloatArray:
         """(N,3) points in the camera frame -> (N,2) distorted pixels; NaN where z <= 0."""
         ...

@@ -44,6 +44,7 @@ from shared.calibration.kalibr import (
     format_yaml_float,
     safe_load_yaml,
 )
+from shared.clock import NS_PER_S, seconds_from_ns
 from shared.errors import InputError
 from shared.fsutil import atomic_path
 from shared.geometry import invert_pose, make_pose, matrix_from_quat_wxyz, quat_wxyz_from_matrix
@@ -229,7 +230,7 @@ class EurocWriter:
         positions = trajectory.poses[:, :3, 3]
         if velocities_m_s is None:
             if count >= 2:
-                times_s = (trajectory.stamps_ns - trajectory.stamps_ns[0]) * 1e-9
+                times_s = seconds_from_ns(trajectory.stamps_ns - trajectory.stamps_ns[0])
                 velocities = np.gradient(positions, times_s, axis=0)
             else:
                 velocities = np.zeros((count, 3))
@@ -282,7 +283,7 @@ class EurocWriter:
         intrinsics = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
         coefficients = [float(c) for c in camera.opencv_distortion[:4]]
         stamps = np.array(self._image_stamps, dtype=np.int64)
-        rate = 1e9 / float(np.median(np.diff(stamps))) if len(stamps) >= 2 else 0.0
+        rate = NS_PER_S / float(np.median(np.diff(stamps))) if len(stamps) >= 2 else 0.0
         topic = json.dumps(self.camera.topic)
         lines = [
             "# General sensor definitions.",
@@ -310,7 +311,7 @@ class EurocWriter:
             rate = noise.update_rate_hz
         elif self._imu_count >= 2 and self._imu_first_ns is not None:
             span_ns = float((self._imu_last_ns or 0) - self._imu_first_ns)
-            rate = (self._imu_count - 1) * 1e9 / span_ns
+            rate = (self._imu_count - 1) * NS_PER_S / span_ns
         else:
             rate = 0.0
         lines = [

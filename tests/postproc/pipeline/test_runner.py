@@ -72,6 +72,9 @@ def test_second_run_does_nothing_and_option_change_reruns_downstream(
     assert calls(markers) == sorted(ALL)
     stamp = json.loads((project.output / "sessions" / "s1" / STAMP_NAME).read_text())
     assert stamp["stage"] == "slam" and len(stamp["digest"]) == 64
+    # The task's peak resident memory (a Python process with NumPy: tens of MiB at least).
+    assert stamp["peak_rss_mib"] > 10
+    assert all(o.peak_rss_mib > 10 for o in first.outcomes)
     assert (project.output / "logs" / "slam_s1.log").read_text().count("done in") == 1
     before = outputs(project.output)
 
