@@ -3,8 +3,12 @@
 Each class owns the file names of its kind and its completeness marker: the file a
 writer puts there last, so that a folder holding it is complete. Nothing else spells
 these names; a reader asks the folder (`SlamFolder(path).trajectory`), a writer too
-(`SlamFolder(tmp).stats`). The classes are light (paths only, no heavy import) so that
-the field side, the pipeline's scheduler and the command lines can all use them.
+(`SlamFolder(tmp).stats`). The main files have typed readers and writers
+(`SlamFolder(path).read_keyframes()`, `DepthFolder(tmp).write_world(trajectory)`): a
+missing or unreadable file is an InputError naming it, and every write is atomic
+(a temporary name, then a rename). The classes are light (their format modules, which
+import NumPy, are imported by the methods that need them) so that the field side, the
+pipeline's scheduler and the command lines can all use them.
 
 - `SessionFolder`: a field recording (`wreckmap-field record` or `gopro import`).
 - `CalibrationFolder`: the pipeline's calibrate stage (a Kalibr camchain).
@@ -30,10 +34,14 @@ import logging
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 from shared.errors import InputError, OutputExistsError, StageError
 from shared.fsutil import atomic_path, write_text_atomic
+
+if TYPE_CHECKING:
+    from shared.calibration.kalibr import CameraCalibration, ImuNoise
+    from shared.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +109,55 @@ class HandoffFolder:
             raise InputError(f"{path}: expected a JSON object")
         return document
 
+    def _expect_file(self, path: Path, what: str) -> None:
+        if not path.is_file():
+            raise InputError(f"{path}: missing (expected the {self.kind} folder's {what})")
+
+    def _write_json(
+        self, path: Path, document: Any, *, overwrite: bool = False, default: Any = None
+    ) -> Path:
+        """A JSON file as every stage writes it: indented by 2, a newline at the end."""
+        text = json.dumps(document, indent=2, default=default) + "\n"
+        return write_text_atomic(path, text, overwrite=overwrite)
+
+    def _read_tum(self, path: Path, what: str) -> Trajectory:
+        from shared.formats.tum import read_tum
+
+        self._expect_file(path, what)
+        try:
+            return read_tum(path)
+        except InputError as error:  # read_tum names the file only: say which folder
+            raise InputError(f"{self.path}: {error}") from None
+
+    def _write_tum(self, path: Path, trajectory: Trajectory, *, overwrite: bool) -> Path:
+        from shared.formats.tum import write_tum
+
+        return write_tum(path, trajectory, overwrite=overwrite)
+
+    def _read_camchain(self, path: Path) -> list[CameraCalibration]:
+        from shared.calibration.kalibr import read_camchain
+
+        self._expect_file(path, "camera chain (Kalibr camchain YAML)")
+        return read_camchain(path)
+
+    def _write_camchain(
+        self, path: Path, cameras: list[CameraCalibration], *, overwrite: bool
+    ) -> Path:
+        from shared.calibration.kalibr import write_camchain
+
+        return write_camchain(path, cameras, overwrite=overwrite)
+
+    def _read_imu_noise(self, path: Path) -> ImuNoise:
+        from shared.calibration.kalibr import read_imu_yaml
+
+        self._expect_file(path, "IMU noise model (Kalibr imu.yaml)")
+        return read_imu_yaml(path)
+
+    def _write_imu_noise(self, path: Path, noise: ImuNoise, *, overwrite: bool) -> Path:
+        from shared.calibration.kalibr import write_imu_yaml
+
+        return write_imu_yaml(path, noise, overwrite=overwrite)
+
 
 class SessionFolder(HandoffFolder):
     """A field session: session.yaml, recording.mcap (or recording_NNN.mcap), calib/."""
@@ -146,6 +203,20 @@ class SessionFolder(HandoffFolder):
     @property
     def imu_yaml(self) -> Path:
         return self.calib / "imu.yaml"
+
+    def read_camchain(self) -> list[CameraCalibration]:
+        """The cameras of calib/camchain.yaml, cam0 first."""
+        return self._read_camchain(self.camchain)
+
+    def write_camchain(self, cameras: list[CameraCalibration], *, overwrite: bool = False) -> Path:
+        return self._write_camchain(self.camchain, cameras, overwrite=overwrite)
+
+    def read_imu_noise(self) -> ImuNoise:
+        """calib/imu.yaml: the IMU's noise model."""
+        return self._read_imu_noise(self.imu_yaml)
+
+    def write_imu_noise(self, noise: ImuNoise, *, overwrite: bool = False) -> Path:
+        return self._write_imu_noise(self.imu_yaml, noise, overwrite=overwrite)
 
 
 class CalibrationFolder(HandoffFolder):
@@ -204,6 +275,31 @@ class CalibrationFolder(HandoffFolder):
         """The camera-IMU step's own folder."""
         return self.path / "imu"
 
+    def read_camchain(self) -> list[CameraCalibration]:
+        """The camera step's cameras (intrinsics; T_cam_imu the identity)."""
+        return self._read_camchain(self.camchain)
+
+    def write_camchain(self, cameras: list[CameraCalibration], *, overwrite: bool = False) -> Path:
+        return self._write_camchain(self.camchain, cameras, overwrite=overwrite)
+
+    def read_imu_camchain(self) -> list[CameraCalibration]:
+        """The camera-IMU step's cameras (with T_cam_imu and timeshift_cam_imu)."""
+        return self._read_camchain(self.imu_camchain)
+
+    def write_imu_camchain(
+        self, cameras: list[CameraCalibration], *, overwrite: bool = False
+    ) -> Path:
+        return self._write_camchain(self.imu_camchain, cameras, overwrite=overwrite)
+
+    def read_rig_camchain(self) -> list[CameraCalibration]:
+        """The rig step's two cameras, cam1 chained from cam0."""
+        return self._read_camchain(self.rig_camchain)
+
+    def write_rig_camchain(
+        self, cameras: list[CameraCalibration], *, overwrite: bool = False
+    ) -> Path:
+        return self._write_camchain(self.rig_camchain, cameras, overwrite=overwrite)
+
 
 class DepthFolder(HandoffFolder):
     """The depth stage: sync.json, trajectory_world.tum, trajectory_world_fused.tum,
@@ -227,6 +323,28 @@ class DepthFolder(HandoffFolder):
     @property
     def plot(self) -> Path:
         return self.path / "depth_sync.png"
+
+    def read_sync(self) -> dict[str, Any]:
+        """sync.json: the clock offset, drift and depth relation (`postproc.depth.stage`)."""
+        return self.read_json(self.sync)
+
+    def write_sync(self, document: dict[str, Any], *, overwrite: bool = False) -> Path:
+        """sync.json, the folder's marker: write it last."""
+        return self._write_json(self.sync, document, overwrite=overwrite)
+
+    def read_world(self) -> Trajectory:
+        """The trajectory at true depth (T_W_B or T_W_C, as the input was)."""
+        return self._read_tum(self.trajectory_world, "trajectory at true depth")
+
+    def write_world(self, trajectory: Trajectory, *, overwrite: bool = False) -> Path:
+        return self._write_tum(self.trajectory_world, trajectory, overwrite=overwrite)
+
+    def read_world_fused(self) -> Trajectory:
+        """The trajectory re-optimised with depth factors (only when the stage fused)."""
+        return self._read_tum(self.trajectory_world_fused, "depth-fused trajectory")
+
+    def write_world_fused(self, trajectory: Trajectory, *, overwrite: bool = False) -> Path:
+        return self._write_tum(self.trajectory_world_fused, trajectory, overwrite=overwrite)
 
 
 class SlamFolder(HandoffFolder):
@@ -292,6 +410,38 @@ class SlamFolder(HandoffFolder):
     def read_stats(self) -> dict[str, Any]:
         return self.read_json(self.stats)
 
+    def write_stats(self, stats: dict[str, Any], *, overwrite: bool = False) -> Path:
+        """stats.json, the folder's marker: write it last (values JSON cannot hold as text)."""
+        return self._write_json(self.stats, stats, overwrite=overwrite, default=str)
+
+    def read_trajectory(self) -> Trajectory:
+        """Every tracked frame's body pose in the session frame (T_S_B)."""
+        return self._read_tum(self.trajectory, "trajectory (body poses)")
+
+    def write_trajectory(self, trajectory: Trajectory, *, overwrite: bool = False) -> Path:
+        return self._write_tum(self.trajectory, trajectory, overwrite=overwrite)
+
+    def read_keyframes(self) -> Trajectory:
+        """The keyframes' camera poses in the session frame (T_S_C)."""
+        return self._read_tum(self.keyframes_tum, "keyframe poses")
+
+    def write_keyframes(self, trajectory: Trajectory, *, overwrite: bool = False) -> Path:
+        return self._write_tum(self.keyframes_tum, trajectory, overwrite=overwrite)
+
+    def read_camchain(self) -> list[CameraCalibration]:
+        """The cameras the keyframes were taken with (calib/camchain.yaml), cam0 first."""
+        return self._read_camchain(self.camchain)
+
+    def write_camchain(self, cameras: list[CameraCalibration], *, overwrite: bool = False) -> Path:
+        return self._write_camchain(self.camchain, cameras, overwrite=overwrite)
+
+    def read_imu_noise(self) -> ImuNoise:
+        """The IMU noise model used (calib/imu.yaml; none for a visual-only run)."""
+        return self._read_imu_noise(self.imu_yaml)
+
+    def write_imu_noise(self, noise: ImuNoise, *, overwrite: bool = False) -> Path:
+        return self._write_imu_noise(self.imu_yaml, noise, overwrite=overwrite)
+
 
 class MergeFolder(HandoffFolder):
     """The merge stage: transforms.json (T_W_S per session), targets.json,
@@ -321,6 +471,18 @@ class MergeFolder(HandoffFolder):
 
     def read_transforms(self) -> dict[str, Any]:
         return self.read_json(self.transforms)
+
+    def read_targets(self) -> dict[str, Any]:
+        return self.read_json(self.targets)
+
+    def read_merged_keyframes(self, session: str) -> Trajectory:
+        """One session's keyframe camera poses in the world frame (T_W_C)."""
+        return self._read_tum(self.merged_keyframes(session), f"merged keyframes of {session}")
+
+    def write_merged_keyframes(
+        self, session: str, trajectory: Trajectory, *, overwrite: bool = False
+    ) -> Path:
+        return self._write_tum(self.merged_keyframes(session), trajectory, overwrite=overwrite)
 
 
 class SfmFolder(HandoffFolder):
@@ -374,6 +536,43 @@ class SfmFolder(HandoffFolder):
 
     def read_stats(self) -> dict[str, Any]:
         return self.read_json(self.stats)
+
+    def write_stats(self, stats: dict[str, Any], *, overwrite: bool = False) -> Path:
+        """stats.json, the folder's marker: write it last."""
+        return self._write_json(self.stats, stats, overwrite=overwrite)
+
+    def read_transforms(self) -> dict[str, Any]:
+        return self.read_json(self.transforms)
+
+    def write_transforms(self, transforms: dict[str, Any], *, overwrite: bool = False) -> Path:
+        return self._write_json(self.transforms, transforms, overwrite=overwrite)
+
+    def read_keyframes(self) -> Trajectory:
+        """A single-session run's refined keyframe poses in the input's frame."""
+        return self._read_tum(self.keyframes_tum, "refined keyframe poses")
+
+    def write_keyframes(self, trajectory: Trajectory, *, overwrite: bool = False) -> Path:
+        return self._write_tum(self.keyframes_tum, trajectory, overwrite=overwrite)
+
+    def read_session_keyframes(self, name: str) -> Trajectory:
+        """One session's refined keyframe poses in the input's frame (T_S_C or T_W_C)."""
+        return self._read_tum(self.session_keyframes(name), f"refined keyframes of {name}")
+
+    def write_session_keyframes(
+        self, name: str, trajectory: Trajectory, *, overwrite: bool = False
+    ) -> Path:
+        return self._write_tum(self.session_keyframes(name), trajectory, overwrite=overwrite)
+
+    def read_session_keyframes_world(self, name: str) -> Trajectory:
+        """One session's refined keyframe poses in the world frame (T_W_C)."""
+        path = self.session_keyframes_world(name)
+        return self._read_tum(path, f"refined world keyframes of {name}")
+
+    def write_session_keyframes_world(
+        self, name: str, trajectory: Trajectory, *, overwrite: bool = False
+    ) -> Path:
+        path = self.session_keyframes_world(name)
+        return self._write_tum(path, trajectory, overwrite=overwrite)
 
 
 class DenseFolder(HandoffFolder):
