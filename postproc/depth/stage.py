@@ -34,7 +34,6 @@ Outputs in `out_dir`:
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import asdict, dataclass
@@ -63,8 +62,6 @@ from shared.errors import InputError, StageError
 from shared.folders import DepthFolder, rebuild, result_stamp
 from shared.formats.diveprofile import DiveProfile, read_dive_folder, read_profile
 from shared.formats.svin import read_trajectory
-from shared.formats.tum import write_tum
-from shared.fsutil import write_text_atomic
 from shared.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -164,12 +161,12 @@ def _build(options: DepthOptions, trajectory_path: Path, dive_path: Path, out: D
             )
 
     world = _world_trajectory(trajectory, sync)
-    write_tum(out.trajectory_world, world)
+    out.write_world(world)
     fused: Trajectory | None = None
     sample_cam_t = sync.camera_time_s(dive.t_s)
     if options.fuse:
         fused = _fuse(options, traj_t, world, sample_cam_t, dive.depth_m)
-        write_tum(out.trajectory_world_fused, fused)
+        out.write_world_fused(fused)
     if options.plot:
         from postproc.depth.plots import plot_depth_sync
 
@@ -210,7 +207,7 @@ def _build(options: DepthOptions, trajectory_path: Path, dive_path: Path, out: D
     if solution is not None and solution.prior_used:
         document["search_ambiguity"] = _ambiguity_document(solution.search_ambiguity, dives)
     # sync.json last: the folder's completeness marker.
-    write_text_atomic(out.sync, json.dumps(document, indent=2) + "\n")
+    out.write_sync(document)
 
 
 def _check_options(options: DepthOptions) -> None:

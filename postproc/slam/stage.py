@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import logging
 import os
 import queue
@@ -78,14 +77,11 @@ from shared.calibration.kalibr import (
     ImuNoise,
     read_camchain,
     read_imu_yaml,
-    write_camchain,
-    write_imu_yaml,
 )
 from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.errors import InputError, StageError
 from shared.folders import SlamFolder, rebuild, result_stamp
 from shared.formats.ply import PlyData, ply_bytes
-from shared.formats.tum import write_tum
 from shared.progress import progress
 from shared.trajectory import Trajectory
 
@@ -597,19 +593,16 @@ def _write_result(
     *,
     stats: dict[str, object],
 ) -> None:
-    write_tum(folder.trajectory, Trajectory(result.frame_stamps_ns, result.session_from_body))
-    write_tum(
-        folder.keyframes_tum,
-        Trajectory(result.keyframe_stamps_ns, result.keyframe_session_from_cam),
-    )
+    folder.write_trajectory(Trajectory(result.frame_stamps_ns, result.session_from_body))
+    folder.write_keyframes(Trajectory(result.keyframe_stamps_ns, result.keyframe_session_from_cam))
     folder.calib.mkdir()
-    write_camchain(folder.camchain, [calibration])
+    folder.write_camchain([calibration])
     if noise is not None:
-        write_imu_yaml(folder.imu_yaml, noise)
+        folder.write_imu_noise(noise)
     folder.map_ply.write_bytes(
         ply_bytes(PlyData(vertices=result.landmarks_s), comments=[LANDMARKS_PLY_COMMENT])
     )
     path_m = Trajectory(result.frame_stamps_ns, result.session_from_body).path_length_m()
     summary = {**stats, **result.stats, "path_length_m": path_m}
     # stats.json last: the folder's completeness marker.
-    folder.stats.write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    folder.write_stats(summary)
