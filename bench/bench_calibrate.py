@@ -257,7 +257,6 @@ def bench_photos() -> None:
 
 
 def bench_gopro() -> None:
-    import json
     import tempfile
 
     from field.gopro.importer import ImportOptions, import_recording
@@ -278,7 +277,7 @@ def bench_gopro() -> None:
             except StageError as error:
                 print(f"  {clip.name}: refused: {error}")
                 continue
-            report = json.loads(out.imu_report.read_text())
+            report = out.read_json(out.imu_report)
             rotation = np.array(report["cam_from_imu_rotation"])
             print(
                 f"  {clip.name}: {np.degrees(rotation_angle_rad(rotation)):.2f} deg from the "

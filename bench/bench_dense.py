@@ -31,7 +31,6 @@ every keyframe a depth map (the figures before the selection).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import tempfile
 import time
@@ -195,7 +194,7 @@ def main() -> None:
     run(options, sfm_dir, out_dir)
     dense_s = time.perf_counter() - start
     load_after = os.getloadavg()[0]
-    report = json.loads(dense.report.read_text())
+    report = dense.read_report()
 
     # Truth: the scene mesh; completeness samples seen by >= 3 keyframes in the undistorted
     # cameras (true depth rendered through the workspace's pinhole camera).

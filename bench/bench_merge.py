@@ -98,7 +98,6 @@ from shared.calibration.aprilgrid_detection import (
 )
 from shared.clock import seconds_from_ns
 from shared.folders import SlamFolder
-from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose, make_pose, pose_difference, rotation_mean_chordal
 from shared.trajectory import Trajectory
 from sim.targets import (
@@ -299,9 +298,7 @@ def make_fieldsim_survey(
         )
         # The SLAM trajectory from the session start (its first pose anchors the frame);
         # camera poses stand in for the body's here: the stage only reads its stamps.
-        write_tum(
-            SlamFolder(root / f"dive{k + 1}").trajectory, Trajectory(stamps, np.array(slam_poses))
-        )
+        SlamFolder(root / f"dive{k + 1}").write_trajectory(Trajectory(stamps, np.array(slam_poses)))
         # Per-keyframe truth for the at-target reference (beside the folders, not in them).
         np.savez(
             root / f"truth_dive{k + 1}.npz",
@@ -637,7 +634,7 @@ def main() -> int:
                     estimate = np.array(entry["T_W_S"])
                     rot, trans = pose_difference(estimate, expected)
                     # The session's keyframes (its map) moved into W.
-                    points = read_tum(SlamFolder(folders[k - 1]).keyframes_tum).positions
+                    points = SlamFolder(folders[k - 1]).read_keyframes().positions
                     moved = points @ (estimate[:3, :3] - expected[:3, :3]).T
                     moved += estimate[:3, 3] - expected[:3, 3]
                     map_error = float(np.sqrt(np.mean(np.sum(moved**2, axis=1))))

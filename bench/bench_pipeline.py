@@ -222,13 +222,13 @@ def describe(project: object) -> None:
     folders = RunFolders(project.output)  # type: ignore[attr-defined]
     sfm_stats, dense_stats = folders.sfm().stats, folders.dense().report
     if sfm_stats.is_file():
-        sfm = json.loads(sfm_stats.read_text())
+        sfm = folders.sfm().read_stats()
         print(
             f"  sfm: {sfm['keyframes']} keyframes, {sfm['points3D']} points, mean track length "
             f"{sfm['mean_track_length']:.1f}, {len(sfm['rounds'])} rounds"
         )
     if dense_stats.is_file():
-        dense = json.loads(dense_stats.read_text())
+        dense = folders.dense().read_report()
         chosen = f"{dense['reference_images']} of {dense['images']}"
         print(f"  dense: {chosen} keyframes get a depth map")
     errors = evaluate_project(project)

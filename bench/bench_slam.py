@@ -68,7 +68,6 @@ from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.errors import StageError
 from shared.folders import SessionFolder, SlamFolder
 from shared.formats.euroc import read_euroc
-from shared.formats.tum import read_tum
 from shared.trajectory import Trajectory, ate
 from sim.features import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
 from sim.survey import SurveyOptions
@@ -260,7 +259,7 @@ def rendered(
                 print(f"{folder.name} {'VIO' if use_imu else 'visual-only'}: FAILED ({error})")
                 continue
             stats = SlamFolder(out).read_stats()
-            estimate = read_tum(SlamFolder(out).trajectory)
+            estimate = SlamFolder(out).read_trajectory()
             # Ground truth is on the IMU clock; the trajectory on the camera clock.
             estimate = Trajectory(estimate.stamps_ns + shift_ns, estimate.poses)
             align: Literal["se3", "sim3"] = "se3" if use_imu else "sim3"
@@ -358,10 +357,9 @@ def colmap_keyframe_poses(slam_dir: Path, work: Path) -> tuple[list[dict[int, Fl
     from postproc.sfm.database import KeyframeSet, write_database
     from postproc.sfm.features import FeatureOptions, extract_features
     from postproc.sfm.refine import camera_poses
-    from shared.calibration.kalibr import read_camchain
 
     slam = SlamFolder(slam_dir)
-    camera = read_camchain(slam.camchain)[0].camera
+    camera = slam.read_camchain()[0].camera
     if work.exists():
         shutil.rmtree(work)
     # `work` is a scratch COLMAP project (images/, database.db, sparse/: COLMAP's usual
@@ -486,8 +484,8 @@ def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict
     for key in ("tracking_losses", "map_segments", "segments", "reinitialisations"):
         if key in stats:
             row[key] = stats[key]
-    keyframes = read_tum(SlamFolder(out).keyframes_tum)
-    trajectory = read_tum(SlamFolder(out).trajectory)
+    keyframes = SlamFolder(out).read_keyframes()
+    trajectory = SlamFolder(out).read_trajectory()
     speeds = np.linalg.norm(np.diff(keyframes.positions, axis=0), axis=1) / np.maximum(
         seconds_from_ns(np.diff(keyframes.stamps_ns)), 1e-9
     )

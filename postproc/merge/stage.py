@@ -389,7 +389,6 @@ def session_names(folders: Sequence[Path]) -> list[str]:
 
 def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Session]:
     from shared.calibration.kalibr import read_camchain
-    from shared.formats.tum import read_tum
 
     names = session_names(folders)
     sessions = []
@@ -402,7 +401,7 @@ def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Sessi
         for path, what in ((keyframes_path, "keyframe poses"), (camchain_path, "camera model")):
             if not path.is_file():
                 raise InputError(f"{folder}: no {path.relative_to(folder)} ({what} expected)")
-        keyframes = read_tum(keyframes_path)
+        keyframes = slam.read_keyframes()
         cameras = {c.name: c for c in read_camchain(camchain_path)}
         if options.camera not in cameras:
             raise InputError(
@@ -447,13 +446,12 @@ def _anchor_ns(folder: Path, keyframes: Trajectory) -> int:
     The first stamp of `trajectory.tum` when it is there and readable (every
     tracked frame), else the first keyframe.
     """
-    from shared.formats.tum import read_tum
-
     first = int(keyframes.stamps_ns[0])
-    path = SlamFolder(folder).trajectory
+    slam = SlamFolder(folder)
+    path = slam.trajectory
     if path.is_file():
         try:
-            return min(first, int(read_tum(path).stamps_ns[0]))
+            return min(first, int(slam.read_trajectory().stamps_ns[0]))
         except InputError:
             log.warning("%s: unreadable, the session anchor is the first keyframe", path)
     return first
@@ -491,7 +489,7 @@ def _apply_depth(options: MergeOptions, session: Session) -> None:
             )
         return
     world = read_tum(world_path)
-    body = read_tum(body_path)
+    body = SlamFolder(session.folder).read_trajectory()
     stamps = session.keyframes.stamps_ns
     start = max(int(world.stamps_ns[0]), int(body.stamps_ns[0]))
     end = min(int(world.stamps_ns[-1]), int(body.stamps_ns[-1]))

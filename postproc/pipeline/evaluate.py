@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -159,7 +159,6 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
     stages: the registry the run used (default `STAGES`; the quick look's places its
     imports in the full run's folder)."""
     from postproc.pipeline.stages import RunFolders
-    from shared.formats.tum import read_tum
     from shared.geometry import invert_pose
 
     if project.truth is None:
@@ -187,7 +186,7 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
         errors: dict[str, Any] = {"truth_session": entry["name"]}
         slam = folders.slam(session.name)
         if slam.trajectory.is_file():
-            estimate = read_tum(slam.trajectory)
+            estimate = slam.read_trajectory()
             poses, inside = _positions_at(body, estimate.stamps_ns + to_true_ns)
             if np.count_nonzero(inside) >= 3:
                 _, e = _rigid(estimate.positions[inside], poses[:, :3, 3])
@@ -195,7 +194,7 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
                 errors["slam_poses"] = int(np.count_nonzero(inside))
         depth = folders.depth(session.name)
         if depth.sync.is_file():
-            sync = json.loads(depth.sync.read_text(encoding="utf-8"))
+            sync = depth.read_sync()
             dc = entry["clocks"]["dive_computer"]
             ref_cam_s = float(sync["reference_time_s"])
             # dive time - camera time = (dive - true) + (true - camera), at the reference.
@@ -206,9 +205,13 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
                 + dc["drift_ppm"] * 1e-6 * (true_s - seconds_from_ns(int(dc["reference_ns"])))
             )
             errors["depth_time_offset_error_s"] = float(sync["time_offset_s"]) - true_offset
-            for world_path in (depth.trajectory_world_fused, depth.trajectory_world):
+            worlds = (
+                (depth.trajectory_world_fused, depth.read_world_fused),
+                (depth.trajectory_world, depth.read_world),
+            )
+            for world_path, read_world in worlds:
                 if world_path.is_file():
-                    world = read_tum(world_path)
+                    world = read_world()
                     poses, inside = _positions_at(body, world.stamps_ns + to_true_ns)
                     dz = world.positions[inside, 2] - poses[:, 2, 3]
                     if dz.size:
@@ -220,13 +223,16 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
 
     true_keyframes: dict[str, FloatArray] = {}  # label -> true world_from_cam (K,4,4)
 
-    def keyframe_errors(paths: dict[str, Path], label: str) -> FloatArray | None:
+    def keyframe_errors(
+        path: Callable[[str], Path], read: Callable[[str], Any], label: str
+    ) -> FloatArray | None:
+        """The error of each session's keyframes (`read(name)`, where `path(name)` is)."""
         est, ref, owner, true_poses = [], [], [], []
-        for name, path in paths.items():
-            if name not in cam_truth or not path.is_file():
+        for name in (s.name for s in project.sessions):
+            if name not in cam_truth or not path(name).is_file():
                 continue
             shift, body = cam_truth[name]
-            keyframes = read_tum(path)
+            keyframes = read(name)
             poses, inside = _positions_at(body, keyframes.stamps_ns + shift)
             world_from_cam = poses @ imu_from_cam
             est.append(keyframes.positions[inside])
@@ -246,12 +252,9 @@ def evaluate_project(project: Any, stages: Mapping[str, Any] | None = None) -> d
         }
         return T
 
-    merge_T = keyframe_errors(
-        {s.name: folders.merge().merged_keyframes(s.name) for s in project.sessions}, "merge"
-    )
-    sfm_T = keyframe_errors(
-        {s.name: folders.sfm().session_keyframes_world(s.name) for s in project.sessions}, "sfm"
-    )
+    merge, sfm = folders.merge(), folders.sfm()
+    merge_T = keyframe_errors(merge.merged_keyframes, merge.read_merged_keyframes, "merge")
+    sfm_T = keyframe_errors(sfm.session_keyframes_world, sfm.read_session_keyframes_world, "sfm")
     alignment = sfm_T if sfm_T is not None else merge_T
     keyframes = true_keyframes.get("sfm" if sfm_T is not None else "merge")
     dense = folders.dense()

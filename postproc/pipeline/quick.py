@@ -150,15 +150,13 @@ class QuickSession:
 
 def read_quick_session(out: Path, name: str) -> QuickSession | None:
     """The session `name` of the quick run in `out` (None: no complete SLAM folder)."""
-    from shared.calibration.kalibr import read_camchain
     from shared.formats.ply import read_ply
-    from shared.formats.tum import read_tum
 
     slam = RunFolders(out).slam(name)
     if not slam.is_complete():
         return None
-    trajectory = read_tum(slam.trajectory)
-    keyframes = read_tum(slam.keyframes_tum)
+    trajectory = slam.read_trajectory()
+    keyframes = slam.read_keyframes()
     landmarks = np.asarray(read_ply(slam.map_ply).vertices, dtype=np.float64).reshape(-1, 3)
     session = QuickSession(
         name=name,
@@ -169,15 +167,15 @@ def read_quick_session(out: Path, name: str) -> QuickSession | None:
         stats=slam.read_stats(),
     )
     try:
-        session.camera = read_camchain(slam.camchain)[0].camera
+        session.camera = slam.read_camchain()[0].camera
     except Exception as error:  # a page shows what it can
         session.notes.append(f"camera model unreadable ({error}): no coverage")
     depth = slam.depth
     if not depth.is_complete():
         session.notes.append("depth not synced: the session's own frame (z = 0 at the start)")
         return session
-    world = read_tum(depth.trajectory_world)
-    session.sync = depth.read_json(depth.sync)
+    world = depth.read_world()
+    session.sync = depth.read_sync()
     # The depth stage keeps x, y and the stamps and moves z: the move per frame,
     # applied to the keyframes at their stamps and to the map by its median.
     stamps = np.asarray(world.stamps_ns, dtype=np.int64)

@@ -21,7 +21,7 @@ import json
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -35,6 +35,9 @@ from shared.folders import (
     SlamFolder,
 )
 from shared.fsutil import write_text_atomic
+
+if TYPE_CHECKING:
+    from shared.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -94,19 +97,25 @@ def _json(path: Path) -> dict[str, Any] | None:
     return value if isinstance(value, dict) else None
 
 
-def trajectory_png(path: Path, title: str) -> bytes | None:
-    """Top view (x, y) of a TUM trajectory, metres."""
+def _shown(read: Callable[[], dict[str, Any]]) -> dict[str, Any] | None:
+    """A folder's JSON file (`read`, one of its readers), None when it cannot be read."""
+    try:
+        return read()
+    except WreckmapError:
+        return None
+
+
+def trajectory_png(read: Callable[[], Trajectory], title: str) -> bytes | None:
+    """Top view (x, y) of a trajectory (`read`, a folder's reader), metres."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from shared.formats.tum import read_tum
-
     try:
-        trajectory = read_tum(path)
+        trajectory = read()
     except Exception as error:  # a report shows what it can
-        log.warning("%s: %s", path, error)
+        log.warning("%s", error)
         return None
     p = trajectory.positions
     fig, ax = plt.subplots(figsize=(5, 4))
@@ -275,19 +284,22 @@ def _evaluation_html(evaluation: dict[str, Any]) -> str:
 
 
 def _slam_section(folder: SlamFolder, session: Any) -> list[str]:
-    stats = _json(folder.stats)
+    stats = _shown(folder.read_stats)
     if stats is None:
         return ["<p class='missing'>SLAM: not run</p>"]
     keys = ("frames", "keyframes", "run_time_s", "sequence_duration_s", "real_time_factor",
             "loop_closures", "tracking_failures")  # fmt: skip
     return [
         "<h3>SLAM</h3>" + _table([(k, stats[k]) for k in keys if k in stats]),
-        _img(trajectory_png(folder.trajectory, f"{session.name}: trajectory (top)"), "trajectory"),
+        _img(
+            trajectory_png(folder.read_trajectory, f"{session.name}: trajectory (top)"),
+            "trajectory",
+        ),
     ]
 
 
 def _depth_section(folder: DepthFolder, session: Any) -> list[str]:
-    sync = _json(folder.sync)
+    sync = _shown(folder.read_sync)
     if sync is None:
         return ["<p class='missing'>Depth: not run</p>"] if session.dive is not None else []
     keys = ("time_offset_s", "time_offset_sigma_s", "drift_ppm", "depth_offset_m",
@@ -300,7 +312,7 @@ def _depth_section(folder: DepthFolder, session: Any) -> list[str]:
 
 def _merge_section(folder: MergeFolder, session: Any) -> list[str]:
     body = ["<h2>Merge</h2>"]
-    transforms = _json(folder.transforms)
+    transforms = _shown(folder.read_transforms)
     if transforms is None:
         return [*body, "<p class='missing'>not run</p>"]
     rows = []
@@ -325,7 +337,7 @@ def _merge_section(folder: MergeFolder, session: Any) -> list[str]:
 
 def _sfm_section(folder: SfmFolder, session: Any) -> list[str]:
     body = ["<h2>Structure from motion</h2>"]
-    sfm = _json(folder.stats)
+    sfm = _shown(folder.read_stats)
     if sfm is None:
         return [*body, "<p class='missing'>not run</p>"]
     keys = ("keyframes", "registered_images", "points3D", "mean_track_length",
@@ -335,7 +347,7 @@ def _sfm_section(folder: SfmFolder, session: Any) -> list[str]:
 
 def _dense_section(folder: DenseFolder, session: Any) -> list[str]:
     body = ["<h2>Dense reconstruction</h2>"]
-    dense = _json(folder.report)
+    dense = _shown(folder.read_report)
     if dense is None:
         return [*body, "<p class='missing'>not run</p>"]
     keys = ("backend", "images", "fused_points", "mesh", "timings")

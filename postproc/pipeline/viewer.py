@@ -23,9 +23,11 @@ import base64
 import html
 import json
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -37,6 +39,9 @@ from postproc.pipeline.decimate import (
     subsample_points,
 )
 from shared.errors import InputError
+
+if TYPE_CHECKING:
+    from shared.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -89,29 +94,29 @@ class ViewerScene:
     notes: list[str] = field(default_factory=list)
 
 
-def keyframe_sources(out: Path, name: str) -> list[tuple[Path, bool]]:
-    """Where a session's keyframe poses may be, best first, with "in the world frame"."""
+def keyframe_sources(out: Path, name: str) -> list[tuple[Path, Callable[[], Trajectory], bool]]:
+    """Where a session's keyframe poses may be, best first: the file, its reader and
+    whether the poses are in the world frame."""
     from postproc.pipeline.stages import RunFolders
 
     folders = RunFolders(out)
+    sfm, merge, slam = folders.sfm(), folders.merge(), folders.slam(name)
     return [
-        (folders.sfm().session_keyframes_world(name), True),
-        (folders.merge().merged_keyframes(name), True),
-        (folders.slam(name).keyframes_tum, False),
+        (sfm.session_keyframes_world(name), partial(sfm.read_session_keyframes_world, name), True),
+        (merge.merged_keyframes(name), partial(merge.read_merged_keyframes, name), True),
+        (slam.keyframes_tum, slam.read_keyframes, False),
     ]
 
 
 def read_session_paths(out: Path, names: list[str]) -> tuple[list[SessionPath], list[str]]:
     """Each session's best keyframe poses (see `keyframe_sources`), and notes."""
-    from shared.formats.tum import read_tum
-
     paths, notes = [], []
     for name in names:
-        for path, in_world in keyframe_sources(out, name):
+        for path, read, in_world in keyframe_sources(out, name):
             if not path.is_file():
                 continue
             try:
-                trajectory = read_tum(path)
+                trajectory = read()
             except Exception as error:  # a report shows what it can
                 notes.append(f"{name}: {path.name} unreadable ({error})")
                 continue
@@ -137,10 +142,9 @@ def read_targets(out: Path) -> list[TargetPlacement]:
     from postproc.pipeline.stages import RunFolders
     from shared.calibration.kalibr import read_target_yaml
 
-    document_path = RunFolders(out).merge().targets
     try:
-        document = json.loads(document_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        document = RunFolders(out).merge().read_targets()
+    except InputError:
         return []
     targets = []
     for name, entry in sorted(document.items()):
