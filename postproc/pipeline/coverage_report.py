@@ -106,7 +106,6 @@ def compute_run_coverage(
     the dense stage or the keyframes are not there)."""
     from postproc.pipeline.stages import RunFolders
     from postproc.pipeline.viewer import read_session_paths, read_targets
-    from shared.calibration.kalibr import read_camchain
 
     options = options or CoverageOptions()
     result = RunCoverage(options=options)
@@ -127,9 +126,8 @@ def compute_run_coverage(
         if not path.in_world:
             result.notes.append(f"{path.name}: left out (keyframes not in the world frame)")
             continue
-        camchain = RunFolders(out).slam(path.name).camchain
         try:
-            camera = read_camchain(camchain)[0].camera
+            camera = RunFolders(out).slam(path.name).read_camchain()[0].camera
         except Exception as error:  # a report shows what it can
             result.notes.append(f"{path.name}: left out (camera model: {error})")
             continue

@@ -17,7 +17,6 @@ from `trajectory.tum` to `trajectory_world.tum` is its `T_W_S`.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -97,9 +96,6 @@ def _image_size(path: Path) -> tuple[int, int]:
 def read_slam_folder(folder: Path, name: str) -> SessionInput:
     """Read one SLAM result folder; checks that every keyframe has its image at the size
     of the calibration (InputError naming the file otherwise)."""
-    from shared.calibration.kalibr import read_camchain
-    from shared.formats.tum import read_tum
-
     if not folder.is_dir():
         raise InputError(f"{folder}: no such folder ({_SLAM_HINT})")
     slam = SlamFolder(folder)
@@ -110,8 +106,8 @@ def read_slam_folder(folder: Path, name: str) -> SessionInput:
         raise InputError(
             f"{calib}: missing (expected the Kalibr camera chain the keyframes were taken with)"
         )
-    camera = read_camchain(calib)[0].camera
-    keyframes = read_tum(slam.keyframes_tum)
+    camera = slam.read_camchain()[0].camera
+    keyframes = slam.read_keyframes()
     images: list[Path] = []
     missing: list[str] = []
     for stamp in keyframes.stamps_ns.tolist():
@@ -134,13 +130,8 @@ def read_slam_folder(folder: Path, name: str) -> SessionInput:
                 f"{expected[0]}x{expected[1]} (expected the images the calibration belongs to)"
             )
     drift = None
-    stats_path = slam.stats
-    if stats_path.is_file():
-        try:
-            stats = json.loads(stats_path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as error:
-            raise InputError(f"{stats_path}: not valid JSON ({error})") from error
-        value = stats.get("drift_per_m") if isinstance(stats, dict) else None
+    if slam.stats.is_file():
+        value = slam.read_stats().get("drift_per_m")
         if isinstance(value, int | float) and math.isfinite(value) and value > 0:
             drift = float(value)
     return SessionInput(
@@ -174,13 +165,9 @@ def read_merge_transforms(folder: Path) -> dict[str, dict[str, Any]]:
     the trace of the translation block of its 6x6 covariance (rotation first, as the
     merge stage writes it); 0 without either.
     """
-    path = MergeFolder(folder).transforms
-    try:
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise InputError(f"{path}: cannot read ({error})") from error
-    if not isinstance(document, dict):
-        raise InputError(f"{path}: expected a JSON object mapping session names to transforms")
+    merge = MergeFolder(folder)
+    path = merge.transforms
+    document = merge.read_transforms()
     sessions = document.get("sessions", document)
     if not isinstance(sessions, dict) or not sessions:
         raise InputError(f"{path}: no sessions (expected {{name: {{T_W_S, covariance, placed}}}})")
@@ -218,18 +205,17 @@ def depth_world_from_session(slam_folder: Path) -> FloatArray | None:
     Fits the rigid transform taking `trajectory.tum` (T_S_B) onto the depth stage's
     `trajectory_world.tum` (T_W_B) over their common stamps.
     """
-    from shared.formats.tum import read_tum
     from shared.geometry import make_pose, umeyama
     from shared.trajectory import associate
 
     slam = SlamFolder(slam_folder)
     body_path = slam.trajectory
-    found = [d.trajectory_world for d in slam.depth_folders() if d.trajectory_world.is_file()]
+    found = [d for d in slam.depth_folders() if d.trajectory_world.is_file()]
     if not (found and body_path.is_file()):
         return None
-    world_path = found[0]
-    world = read_tum(world_path)
-    body = read_tum(body_path)
+    world_path = found[0].trajectory_world
+    world = found[0].read_world()
+    body = slam.read_trajectory()
     i, j = associate(body.stamps_ns, world.stamps_ns, max_dt_ns=1_000_000)
     if i.size < 3:
         raise InputError(
@@ -240,10 +226,9 @@ def depth_world_from_session(slam_folder: Path) -> FloatArray | None:
     return make_pose(R, t)
 
 
-def _merged_keyframes(path: Path, session: SessionInput) -> Trajectory:
-    from shared.formats.tum import read_tum
-
-    merged = read_tum(path)
+def _merged_keyframes(merge: MergeFolder, session: SessionInput) -> Trajectory:
+    path = merge.merged_keyframes(session.folder.name)
+    merged = merge.read_merged_keyframes(session.folder.name)
     if not np.array_equal(merged.stamps_ns, session.keyframes.stamps_ns):
         raise InputError(
             f"{path}: {len(merged)} poses whose stamps differ from the {len(session.keyframes)} "
@@ -321,9 +306,10 @@ def read_inputs(input_dirs: list[Path]) -> list[SessionInput]:
                 session.world_from_session = placement["world_from_session"]
                 session.world_sigma_m = placement["sigma_m"]
                 session.source = "merge"
-            merged = MergeFolder(merges[0][0]).merged_keyframes(session.folder.name)
+            merge = MergeFolder(merges[0][0])
+            merged = merge.merged_keyframes(session.folder.name)
             if session.world_from_session is not None and merged.is_file():
-                session.world_keyframes = _merged_keyframes(merged, session)
+                session.world_keyframes = _merged_keyframes(merge, session)
         if not any(s.world_from_session is not None for s in sessions):
             raise InputError(
                 f"{MergeFolder(merges[0][0]).transforms}: no session is placed "

@@ -30,7 +30,6 @@ interrupted run is resumed there by the next run with the same inputs and option
 
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 import time
@@ -57,7 +56,7 @@ from postproc.sfm.refine import RefineResult, refine
 from shared.calibration.cameras import CameraModel
 from shared.errors import InputError, StageError
 from shared.folders import MergeFolder, SfmFolder, SlamFolder, rebuild, result_stamp
-from shared.fsutil import atomic_path, write_text_atomic
+from shared.fsutil import atomic_path
 from shared.geometry import invert_pose
 from shared.progress import MapFn
 from shared.trajectory import Trajectory
@@ -185,8 +184,6 @@ def _write_outputs(
     keyframes: KeyframeSet,
     result: RefineResult,
 ) -> dict[str, Any]:
-    from shared.formats.tum import write_tum
-
     prior_world = keyframes.world_from_cam.copy()
     world_from_session: dict[int, FloatArray] = {}
     for k, session in enumerate(sessions):
@@ -209,12 +206,12 @@ def _write_outputs(
         stamps = keyframes.stamps_ns[members]
         if T is not None:
             world = Trajectory(stamps, refined[members])
-            write_tum(out_dir.session_keyframes_world(session.name), world, overwrite=True)
+            out_dir.write_session_keyframes_world(session.name, world, overwrite=True)
             # The input's frame: W for a merged session, S for a SLAM folder.
             local = world if session.source == "merge" else world.transformed(invert_pose(T))
-            write_tum(out_dir.session_keyframes(session.name), local, overwrite=True)
+            out_dir.write_session_keyframes(session.name, local, overwrite=True)
             if len(sessions) == 1:
-                write_tum(out_dir.keyframes_tum, local, overwrite=True)
+                out_dir.write_keyframes(local, overwrite=True)
             moves = np.linalg.norm(refined[members, :3, 3] - prior_world[members, :3, 3], axis=1)
         else:
             moves = np.zeros(0)
@@ -233,7 +230,7 @@ def _write_outputs(
             "prior_to_refined_rms_m": float(np.sqrt(np.mean(moves**2))) if moves.size else None,
             "prior_to_refined_max_m": float(np.max(moves)) if moves.size else None,
         }
-    write_text_atomic(out_dir.transforms, json.dumps(transforms, indent=2) + "\n", overwrite=True)
+    out_dir.write_transforms(transforms, overwrite=True)
     return session_stats
 
 
@@ -381,4 +378,4 @@ def _build(
         "options": asdict(options),
     }
     # stats.json last: the folder's completeness marker.
-    write_text_atomic(out.stats, json.dumps(stats, indent=2) + "\n", overwrite=True)
+    out.write_stats(stats, overwrite=True)

@@ -176,7 +176,7 @@ def test_merge_errors(slam_survey: list[SlamLikeSession], tmp_path: Path) -> Non
     merge = tmp_path / "merge"
     merge.mkdir()
     (merge / "transforms.json").write_text("{not json")
-    with pytest.raises(InputError, match=r"transforms\.json: cannot read"):
+    with pytest.raises(InputError, match=r"transforms\.json: not valid JSON"):
         read_inputs([merge])
     (merge / "transforms.json").write_text(json.dumps({"ghost": {"T_W_S": np.eye(4).tolist()}}))
     with pytest.raises(InputError, match="session 'ghost' has no SLAM folder"):
