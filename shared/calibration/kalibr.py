@@ -94,7 +94,9 @@ class ImuNoise:
 # ---------------------------------------------------------------------------- parsing helpers
 
 
-def _load_yaml_mapping(path: Path) -> dict[str, Any]:
+def load_yaml_mapping(path: Path) -> dict[str, Any]:
+    """A YAML file from outside (Kalibr's, EuRoC's, OpenCV's) whose top level is a mapping;
+    InputError naming `path` when it is missing, unreadable, malformed or not a mapping."""
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -319,7 +321,7 @@ def read_camchain(path: Path | str) -> list[CameraCalibration]:
     previous camera; with neither it keeps the identity (camera-only chain).
     """
     path = Path(path)
-    data = _load_yaml_mapping(path)
+    data = load_yaml_mapping(path)
     names = sorted(data, key=lambda n: _camera_sort_key(str(n)))
     if not names:
         raise InputError(f"{path}: no cameras (expected keys cam0, cam1, ...)")
@@ -399,7 +401,7 @@ _IMU_KEYS = (
 def read_imu_yaml(path: Path | str) -> ImuNoise:
     """Read a Kalibr `imu.yaml` (noise densities, random walks, `update_rate` in Hz)."""
     path = Path(path)
-    data = _load_yaml_mapping(path)
+    data = load_yaml_mapping(path)
     where = str(path)
     values = {key: _require_number(data, key, where, unit.split(",")[0]) for key, unit in _IMU_KEYS}
     for key, value in values.items():
@@ -443,7 +445,7 @@ def write_imu_yaml(path: Path | str, noise: ImuNoise, *, overwrite: bool = False
 def read_target_yaml(path: Path | str) -> AprilGridTarget:
     """Read a Kalibr AprilGrid target YAML (plus our optional `tagIdOffset`, default 0)."""
     path = Path(path)
-    data = _load_yaml_mapping(path)
+    data = load_yaml_mapping(path)
     where = str(path)
     target_type = _require_str(data, "target_type", where)
     if target_type != "aprilgrid":

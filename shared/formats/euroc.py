@@ -42,7 +42,7 @@ from shared.calibration.kalibr import (
     CameraCalibration,
     ImuNoise,
     format_yaml_float,
-    safe_load_yaml,
+    load_yaml_mapping,
 )
 from shared.clock import NS_PER_S, seconds_from_ns
 from shared.errors import InputError
@@ -453,20 +453,6 @@ def _read_camera_csv(path: Path) -> tuple[IntArray, list[Path]]:
     return np.array(stamps, dtype=np.int64), paths
 
 
-def _load_yaml(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(f"{path}: cannot read ({error})") from None
-    # EuRoC's own files start with OpenCV's "%YAML:1.0" directive, which PyYAML rejects.
-    if text.startswith("%YAML:"):
-        text = text.split("\n", 1)[1] if "\n" in text else ""
-    data = safe_load_yaml(text, path)
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a YAML mapping at the top level")
-    return data
-
-
 def _yaml_numbers(data: dict[str, Any], key: str, count: int, path: Path, what: str) -> list[float]:
     value = data.get(key)
     if not isinstance(value, list) or len(value) != count:
@@ -496,7 +482,7 @@ def _read_body_from_sensor(data: dict[str, Any], path: Path) -> FloatArray:
 
 
 def _read_camera_yaml(path: Path, imu_T_BS: FloatArray) -> CameraCalibration:
-    data = _load_yaml(path)
+    data = load_yaml_mapping(path)
     camera_model = data.get("camera_model")
     distortion = _DISTORTION_NAMES.get(str(data.get("distortion_model")))
     camera_class = CAMERA_MODELS.get((str(camera_model), str(distortion)))
@@ -544,7 +530,7 @@ _IMU_NOISE_KEYS = (
 
 
 def _read_imu_yaml(path: Path) -> tuple[FloatArray, ImuNoise | None]:
-    data = _load_yaml(path)
+    data = load_yaml_mapping(path)
     body_from_imu = _read_body_from_sensor(data, path) if "T_BS" in data else np.eye(4)
     if not any(key in data for key in _IMU_NOISE_KEYS):
         return body_from_imu, None
