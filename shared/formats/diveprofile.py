@@ -147,26 +147,34 @@ def _parse_cell(path: Path, line_no: int, column: str, cell: str) -> float:
         ) from None
 
 
-def read_dive_csv_arrays(
-    path: Path | str,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Read one dive CSV into (stamps_s, depth_m, temperature_c), NaN for empty cells."""
-    path = Path(path)
+def read_csv_rows(path: Path, *, what: str, encoding: str = "utf-8") -> list[list[str]]:
+    """The rows of a CSV file from outside (a dive computer's, a logbook's export); an
+    InputError naming the file (and the line) when it is missing, unreadable, not UTF-8
+    text or not CSV. what: the kind of file expected ("dive CSV"); encoding: "utf-8-sig"
+    to drop a byte-order mark."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding=encoding)
     except FileNotFoundError:
-        raise InputError(f"{path}: no such dive CSV") from None
+        raise InputError(f"{path}: no such {what}") from None
     except UnicodeDecodeError as error:
         raise InputError(
-            f"{path}: not UTF-8 text at byte {error.start} (expected a dive CSV)"
+            f"{path}: not UTF-8 text at byte {error.start} (expected a {what})"
         ) from None
     except OSError as error:  # a folder, no permission...
         raise InputError(f"{path}: cannot read ({error.strerror})") from None
     reader = csv.reader(io.StringIO(text))
     try:
-        rows = list(reader)
+        return list(reader)
     except csv.Error as error:  # a cell beyond the csv module's field size limit, for example
         raise InputError(f"{path}:{reader.line_num}: not a valid CSV line ({error})") from None
+
+
+def read_dive_csv_arrays(
+    path: Path | str,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Read one dive CSV into (stamps_s, depth_m, temperature_c), NaN for empty cells."""
+    path = Path(path)
+    rows = read_csv_rows(path, what="dive CSV")
     if not rows or tuple(cell.strip() for cell in rows[0]) != CSV_HEADER:
         found = ",".join(rows[0]) if rows else "an empty file"
         raise InputError(f"{path}:1: expected the header {','.join(CSV_HEADER)}, found {found}")

@@ -13,6 +13,7 @@ from shared.errors import InputError, OutputExistsError
 from shared.formats.diveprofile import (
     DiveProfile,
     dive_csv_text,
+    read_csv_rows,
     read_dive_csv,
     read_dive_folder,
     read_dive_index,
@@ -170,3 +171,19 @@ def test_csv_text_of_empty_dive() -> None:
     empty = DiveProfile(np.zeros(0), np.zeros(0), np.zeros(0), start_iso="2024-01-01T00:00:00")
     assert dive_csv_text(empty) == "timestamp_s,depth_m,temperature_c\n"
     assert empty.duration_s == 0.0 and math.isnan(empty.max_depth_m)
+
+
+def test_csv_rows_and_every_way_a_file_is_not_one(tmp_path: Path) -> None:
+    path = tmp_path / "log.csv"
+    path.write_bytes("\ufeffa,b\n1,2\n".encode())
+    assert read_csv_rows(path, what="dive CSV", encoding="utf-8-sig") == [["a", "b"], ["1", "2"]]
+    with pytest.raises(InputError, match=r"gone\.csv: no such dive CSV$"):
+        read_csv_rows(tmp_path / "gone.csv", what="dive CSV")
+    with pytest.raises(InputError, match=r": cannot read \("):
+        read_csv_rows(tmp_path, what="dive CSV")
+    path.write_bytes(b"a,b\n\xff\n")
+    with pytest.raises(InputError, match=r"log\.csv: not UTF-8 text at byte 4 \(expected a dive"):
+        read_csv_rows(path, what="dive CSV")
+    path.write_text('a,b\n"x' + "y" * 200_000 + '"\n')
+    with pytest.raises(InputError, match=r"log\.csv:\d+: not a valid CSV line"):
+        read_csv_rows(path, what="dive CSV")

@@ -6,8 +6,6 @@ Units: metric or imperial, from the column headers when they carry units ("Depth
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from datetime import datetime
 from pathlib import Path
@@ -19,7 +17,7 @@ from field.divecomputer.importers.common import (
     start_fingerprint,
 )
 from shared.errors import InputError
-from shared.formats.diveprofile import DiveProfile
+from shared.formats.diveprofile import DiveProfile, read_csv_rows
 
 FEET_TO_M = 0.3048
 _DATE_FORMATS = ("%m/%d/%Y %I:%M:%S %p", "%Y-%m-%d %H:%M:%S", "%d/%m/%Y %H:%M:%S", "%m/%d/%Y %H:%M")
@@ -62,19 +60,7 @@ def _parse_date(text: str, where: str) -> str:
 
 def read_shearwater_csv(path: Path) -> list[DiveProfile]:
     """The one dive of a Shearwater Cloud CSV export."""
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as error:
-        raise InputError(
-            f"{path}: not UTF-8 text at byte {error.start} (expected a Shearwater Cloud CSV)"
-        ) from None
-    except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror})") from None
-    reader = csv.reader(io.StringIO(text))
-    try:
-        rows = list(reader)
-    except csv.Error as error:  # a cell beyond the csv module's field size limit, for example
-        raise InputError(f"{path}:{reader.line_num}: not a valid CSV line ({error})") from None
+    rows = read_csv_rows(path, what="Shearwater Cloud CSV", encoding="utf-8-sig")
     if len(rows) < 3 or "Start Date" not in [c.strip() for c in rows[0]]:
         raise InputError(
             f"{path}:1: not a Shearwater Cloud CSV (expected a summary header with 'Start Date')"
