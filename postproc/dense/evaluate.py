@@ -143,15 +143,13 @@ def visibility_counts(
     """How many cameras see each point: it projects inside the (pinhole) image, in front,
     no farther than `max_range_m` from the camera centre, and the camera's true depth map
     there agrees with its depth (so a surface behind another is not seen)."""
+    # With a range limit, the ranges from every camera that sees a point (one pass).
+    limited = bool(np.isfinite(max_range_m))
     counts, ranges = visibility(
         points_m, Ks, cams_from_world, depth_maps_m, tolerance_m=tolerance_m,
-        tolerance_rel=tolerance_rel, nearest=0,
+        tolerance_rel=tolerance_rel, nearest=len(Ks) if limited else 0,
     )  # fmt: skip
-    if np.isfinite(max_range_m):
-        counts, ranges = visibility(
-            points_m, Ks, cams_from_world, depth_maps_m, tolerance_m=tolerance_m,
-            tolerance_rel=tolerance_rel, nearest=len(Ks),
-        )  # fmt: skip
+    if limited:
         within: npt.NDArray[np.int64] = np.sum(ranges <= max_range_m, axis=1).astype(np.int64)
         return within
     return counts
