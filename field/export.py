@@ -87,7 +87,6 @@ def _read_imu(session_dir: Path, topic: str) -> tuple[np.ndarray, np.ndarray, np
 
 def export_euroc(options: ExportOptions, session_dir: Path, out: Path, *, overwrite: bool) -> Path:
     """The session as an EuRoC folder at `out` (see the module docstring)."""
-    from shared.calibration.kalibr import read_camchain, read_imu_yaml
     from shared.formats.euroc import EurocWriter
 
     folder = SessionFolder(session_dir)
@@ -96,11 +95,10 @@ def export_euroc(options: ExportOptions, session_dir: Path, out: Path, *, overwr
         raise InputError(
             f"{session_dir}: no {folder.relative(camchain)} (EuRoC needs the intrinsics)"
         )
-    calibration = read_camchain(camchain)[0]
+    calibration = folder.read_camchain()[0]
     if options.scale != 1.0:
         calibration.camera = calibration.camera.scaled(options.scale)
-    imu_yaml = folder.imu_yaml
-    noise = read_imu_yaml(imu_yaml) if imu_yaml.is_file() else None
+    noise = folder.read_imu_noise() if folder.imu_yaml.is_file() else None
     imu = _read_imu(session_dir, options.imu_topic)
     with (
         SessionVideo(

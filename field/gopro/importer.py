@@ -1111,8 +1111,6 @@ def _write_calibration(
         CameraCalibration,
         read_camchain,
         read_imu_yaml,
-        write_camchain,
-        write_imu_yaml,
     )
 
     session = SessionFolder(folder)
@@ -1129,8 +1127,7 @@ def _write_calibration(
         rows["camchain_source"] = f"given ({options.camchain.name})"
     else:
         guess = cameras.guess_camera(camera, width=width, height=height, medium=options.medium)
-        write_camchain(
-            session.camchain,
+        session.write_camchain(
             [
                 CameraCalibration(
                     camera=guess,
@@ -1150,9 +1147,8 @@ def _write_calibration(
         rows["imu"] = session.relative(session.imu_yaml)
         rows["imu_source"] = f"given ({options.imu_yaml.name})"
     elif imu_rate_hz is not None:
-        write_imu_yaml(
-            session.imu_yaml,
-            cameras.gopro_imu_noise(imu_rate_hz, topic=imu_topic(options.imu_index)),
+        session.write_imu_noise(
+            cameras.gopro_imu_noise(imu_rate_hz, topic=imu_topic(options.imu_index))
         )
         rows["imu"] = session.relative(session.imu_yaml)
         rows["imu_source"] = "typical GoPro MEMS noise (field.gopro.cameras.GOPRO_IMU_NOISE)"

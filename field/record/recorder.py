@@ -622,17 +622,15 @@ class Recorder:
     # -- session folder ------------------------------------------------------------
 
     def _write_calibration(self) -> None:
-        from shared.calibration.kalibr import write_camchain, write_imu_yaml
-
         for source in self.sources:
             calib = source.calibration()
             if calib is None:
                 continue
             cameras, imu = calib
             if cameras:
-                write_camchain(self.folder.camchain, cameras, overwrite=self.overwrite)
+                self.folder.write_camchain(cameras, overwrite=self.overwrite)
             if imu is not None:
-                write_imu_yaml(self.folder.imu_yaml, imu, overwrite=self.overwrite)
+                self.folder.write_imu_noise(imu, overwrite=self.overwrite)
             return  # one calibration per session (the first source that has one)
 
     def _session_yaml_text(self, *, final: bool, report: RecordReport | None = None) -> str:

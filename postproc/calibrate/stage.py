@@ -64,7 +64,6 @@ from shared.calibration.kalibr import (
     CameraCalibration,
     read_camchain,
     read_target_yaml,
-    write_camchain,
 )
 from shared.clock import NS_PER_S, seconds_from_ns
 from shared.errors import InputError, StageError
@@ -252,7 +251,7 @@ def _camera(
         False,
     )
     calibration = CameraCalibration(camera=camera, topic=topic, name="cam0")
-    write_camchain(out.camchain, [calibration])
+    out.write_camchain([calibration])
 
 
 # ------------------------------------------------------------------------------ camera-IMU
@@ -435,7 +434,7 @@ def _imu(
         },
         False,
     )
-    write_camchain(out.imu_camchain, cameras)
+    out.write_imu_camchain(cameras)
 
 
 # ------------------------------------------------------------------------------ two rigs
@@ -514,7 +513,7 @@ def _rig(
         },
         False,
     )
-    write_camchain(out.rig_camchain, [first, second])
+    out.write_rig_camchain([first, second])
 
 
 # ------------------------------------------------------------------------------ pipeline

@@ -46,7 +46,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from shared.calibration.kalibr import CameraCalibration, ImuNoise, read_camchain, read_imu_yaml
+from shared.calibration.kalibr import CameraCalibration, ImuNoise
 from shared.clock import NS_PER_S
 from shared.errors import InputError
 from shared.folders import SessionFolder
@@ -284,13 +284,13 @@ class SessionRecording:
 
     @cached_property
     def calibration(self) -> CameraCalibration | None:
-        camchain = self._session.camchain
-        return read_camchain(camchain)[0] if camchain.is_file() else None
+        session = self._session
+        return session.read_camchain()[0] if session.camchain.is_file() else None
 
     @cached_property
     def imu_noise(self) -> ImuNoise | None:
-        imu_yaml = self._session.imu_yaml
-        return read_imu_yaml(imu_yaml) if imu_yaml.is_file() else None
+        session = self._session
+        return session.read_imu_noise() if session.imu_yaml.is_file() else None
 
     @cached_property
     def calibration_is_guess(self) -> bool:
