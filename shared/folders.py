@@ -472,6 +472,10 @@ class MergeFolder(HandoffFolder):
     def read_transforms(self) -> dict[str, Any]:
         return self.read_json(self.transforms)
 
+    def write_transforms(self, transforms: dict[str, Any], *, overwrite: bool = False) -> Path:
+        """transforms.json, the folder's marker: write it last."""
+        return self._write_json(self.transforms, transforms, overwrite=overwrite)
+
     def read_targets(self) -> dict[str, Any]:
         return self.read_json(self.targets)
 
@@ -614,6 +618,10 @@ class DenseFolder(HandoffFolder):
 
     def read_report(self) -> dict[str, Any]:
         return self.read_json(self.report)
+
+    def write_report(self, report: dict[str, Any], *, overwrite: bool = False) -> Path:
+        """dense.json, the folder's marker: write it last."""
+        return self._write_json(self.report, report, overwrite=overwrite)
 
 
 FOLDER_KINDS: tuple[type[HandoffFolder], ...] = (

@@ -9,7 +9,6 @@ and heading, as visual-inertial odometry drifts) plus small per-keyframe jitter.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,9 +16,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from shared.calibration.kalibr import write_camchain
 from shared.folders import MergeFolder, SlamFolder
-from shared.formats.tum import write_tum
 from shared.geometry import invert_pose, make_pose, so3_exp
 from shared.trajectory import Trajectory
 from sim.survey import SurveyOptions, SurveySimulator
@@ -140,12 +137,12 @@ def write_slam_like_survey(
             gray = cv2.cvtColor(frame.image_rgb, cv2.COLOR_RGB2GRAY)
             cv2.imwrite(str(slam.keyframe_image(stamp)), gray)
         estimate_trajectory = Trajectory(stamps, estimate)
-        write_tum(slam.keyframes_tum, estimate_trajectory)
-        write_camchain(slam.camchain, [sim.calibration])
+        slam.write_keyframes(estimate_trajectory)
+        slam.write_camchain([sim.calibration])
         if write_stats:
             path = Trajectory(stamps, session_from_cam).path_length_m()
             stats = {"keyframes": len(stamps), "path_length_m": path, "drift_per_m": drift_per_m}
-            slam.stats.write_text(json.dumps(stats, indent=2) + "\n")
+            slam.write_stats(stats, overwrite=True)
         result.append(
             SlamLikeSession(
                 folder=folder,
@@ -180,15 +177,12 @@ def write_merge_like(
         if is_placed and error_m > 0:
             T[:3, 3] += rng.normal(size=3) * error_m
         if is_placed:
-            write_tum(
-                merge.merged_keyframes(session.folder.name),
-                session.estimate.transformed(T),
-            )
+            merge.write_merged_keyframes(session.folder.name, session.estimate.transformed(T))
         entries[session.folder.name] = {
             "folder": str(session.folder),
             "placed": is_placed,
             "T_W_S": T.tolist() if is_placed else None,
             "covariance": (np.eye(6) * max(error_m, 0.01) ** 2).tolist() if is_placed else None,
         }
-    merge.transforms.write_text(json.dumps({"sessions": entries}, indent=2) + "\n")
+    merge.write_transforms({"sessions": entries}, overwrite=True)
     return out_dir

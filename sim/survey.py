@@ -643,7 +643,7 @@ def run(options: SurveyOptions, out_dir: Path | str, *, overwrite: bool = False)
     Refuses an existing non-empty `out_dir` unless `overwrite`; everything is written
     under a temporary name and renamed into place when complete.
     """
-    from shared.calibration.kalibr import write_camchain, write_imu_yaml, write_target_yaml
+    from shared.calibration.kalibr import write_target_yaml
     from shared.fsutil import atomic_path, write_text_atomic
     from shared.progress import progress_bar
 
@@ -661,8 +661,8 @@ def run(options: SurveyOptions, out_dir: Path | str, *, overwrite: bool = False)
         for placement in scene.targets:
             write_target_yaml(tmp / "targets" / f"{placement.name}.yaml", placement.target)
         calib = SessionFolder(tmp)  # a session's calib/ layout (_SURVEY_CALIB)
-        write_camchain(calib.camchain, [sim.calibration])
-        write_imu_yaml(calib.imu_yaml, options.imu)
+        calib.write_camchain([sim.calibration])
+        calib.write_imu_noise(options.imu)
         bar = progress_bar(total=total, desc="sim survey", unit="frame")
         try:
             for k in range(len(sim.sessions)):

@@ -27,10 +27,9 @@ from shared.calibration.aprilgrid import (
     texture_pixel_from_target,
 )
 from shared.calibration.cameras import CameraModel, PinholeRadtan
-from shared.calibration.kalibr import CameraCalibration, write_camchain
+from shared.calibration.kalibr import CameraCalibration
 from shared.clock import ns_from_seconds
 from shared.folders import SlamFolder
-from shared.formats.tum import write_tum
 from shared.geometry import invert_pose, look_at, make_pose
 from shared.trajectory import Trajectory
 
@@ -189,10 +188,10 @@ def write_slam_folder(
     slam = SlamFolder(folder)
     folder.mkdir(parents=True, exist_ok=True)
     slam.keyframes.mkdir(exist_ok=True)
-    write_tum(slam.keyframes_tum, Trajectory(stamps, np.asarray(session_from_cam)))
+    slam.write_keyframes(Trajectory(stamps, np.asarray(session_from_cam)))
     for stamp, image in zip(stamps, images, strict=True):
         cv2.imwrite(str(slam.keyframe_image(int(stamp))), image)
-    write_camchain(slam.camchain, [CameraCalibration(camera=camera)])
+    slam.write_camchain([CameraCalibration(camera=camera)])
     return folder
 
 

@@ -31,7 +31,6 @@ with the same inputs and options; `overwrite=True` redoes everything.
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import shutil
 import time
@@ -503,7 +502,7 @@ def _build(
         timings["meshing_s"] = time.perf_counter() - start
     report["timings"] = timings
     # dense.json last: the folder's completeness marker.
-    write_text_atomic(out.report, json.dumps(report, indent=2) + "\n", overwrite=True)
+    out.write_report(report, overwrite=True)
 
 
 def reference_views(

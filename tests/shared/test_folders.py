@@ -15,6 +15,7 @@ from shared.folders import (
     FOLDER_KINDS,
     RESULT_STAMP,
     CalibrationFolder,
+    DenseFolder,
     DepthFolder,
     MergeFolder,
     SessionFolder,
@@ -205,8 +206,10 @@ def test_trajectory_files_round_trip_and_name_the_file_they_cannot_read(
 JSON_FILES = [
     (SlamFolder("s"), "read_stats", "write_stats", "stats.json"),
     (DepthFolder("d"), "read_sync", "write_sync", "sync.json"),
+    (MergeFolder("m"), "read_transforms", "write_transforms", "transforms.json"),
     (SfmFolder("f"), "read_stats", "write_stats", "stats.json"),
     (SfmFolder("f"), "read_transforms", "write_transforms", "transforms.json"),
+    (DenseFolder("e"), "read_report", "write_report", "dense.json"),
 ]
 
 
