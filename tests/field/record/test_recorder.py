@@ -112,10 +112,12 @@ class FakeSource:
             self.produced += len(out)
             time.sleep(0.001)
             return out
-        while self.t0 + self.next_imu * 1e9 / self.imu_hz <= now:
+        # Integer stamps: t0 (~1.8e18 ns) as a float is only good to 256 ns, which let a
+        # sample out up to that much before its own stamp (log time < stamp_ns).
+        while self.t0 + round(self.next_imu * 1e9 / self.imu_hz) <= now:
             out.append(self._imu(self.next_imu, now))
             self.next_imu += 1
-        while self.fps and self.t0 + self.next_frame * 1e9 / self.fps <= now:
+        while self.fps and self.t0 + round(self.next_frame * 1e9 / self.fps) <= now:
             out.append(self._frame(self.next_frame, now))
             self.next_frame += 1
         if not out:
