@@ -1,7 +1,8 @@
 """SfM seeded by SLAM poses against COLMAP's incremental mapper from scratch, on the simulator.
 
-Run: .venv/bin/python bench/bench_sfm.py [--keyframes 600] [--fractions 0.27,0.54,1]
-     [--baseline-fractions 0.54] [--work DIR]
+Run: .venv/bin/python bench/bench_sfm.py [--keyframes 600] [--sessions 2]
+     [--fractions 0.27,0.54,1] [--baseline-fractions 0.54] [--ba-max-track-length N]
+     [--refine-only] [--work DIR]
 
 Two simulated sessions (sim) rendered at 640x360, keyframes at 2 Hz, with
 SLAM-like priors: a path-proportional biased random walk (2 % of the distance
@@ -12,7 +13,18 @@ per size it prints the time of each step (the first pass of triangulation and
 adjustment rounds at the priors, then the pass on tracks rebuilt at the refined
 poses, see `postproc.sfm.refine`), seconds per keyframe (scaling) and the ATE
 of the priors and of the refined keyframes per session, without alignment (the
-world frame and metric scale kept), rigid (se3) and similarity (sim3).
+world frame and metric scale kept), rigid (se3) and similarity (sim3). The scaling
+summary gives, per size, the wall and CPU time of the stage (this process and its
+children: the figure that holds on a shared machine), the mean observations per point
+going into the adjustments, and the exponent k of time ~ keyframes^k between the
+smallest and the largest size. `--sessions 1 --keyframes 1200 --fractions 0.3,1
+--baseline-fractions ''` is a 10-minute dive that keeps revisiting the wreck, and its
+first 3 minutes (the sizes `bench_pipeline.py` measures SfM's k at).
+`--refine-only` reruns only the refinement (triangulation and adjustment rounds,
+`postproc.sfm.refine`) on a copy of the database an earlier run at the same size
+left in --work (same features, matches and priors), timed by CPU; it prints its
+rounds, k and errors the same way, to compare refinement settings without
+extracting and matching again.
 
 The baseline, at the `--baseline-fractions` sizes, is what the paper did and the
 issue asks to beat: COLMAP from scratch on the same images, i.e. pycolmap 4.2.1
@@ -40,12 +52,13 @@ from __future__ import annotations
 import argparse
 import os
 import pickle
+import resource
 import shutil
 import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -63,10 +76,19 @@ from sim.slam_like import (
     write_slam_like_survey,
 )
 
+Align = Literal["se3", "sim3", "none"]
+
 
 def load() -> str:
     path = Path("/proc/loadavg")
     return path.read_text().split()[0] if path.exists() else "?"
+
+
+def cpu_s() -> float:
+    """CPU seconds of this process and its finished children so far (user + system)."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def ate_row(estimate: Trajectory, truth: Trajectory) -> str:
@@ -76,9 +98,10 @@ def ate_row(estimate: Trajectory, truth: Trajectory) -> str:
     )
 
 
-def survey(work: Path, keyframes: int) -> list[SlamLikeSession]:
-    """The simulated two-session survey (rendered once, then reused from `work`)."""
-    root = work / f"survey_{keyframes}"
+def survey(work: Path, keyframes: int, sessions_n: int = 2) -> list[SlamLikeSession]:
+    """The simulated survey, `keyframes` over `sessions_n` sessions (rendered once, then
+    reused from `work`)."""
+    root = work / (f"survey_{keyframes}" if sessions_n == 2 else f"survey_{keyframes}_{sessions_n}")
     cache = root / "sessions.pkl"
     if cache.exists():
         with cache.open("rb") as f:
@@ -87,8 +110,8 @@ def survey(work: Path, keyframes: int) -> list[SlamLikeSession]:
     start = time.perf_counter()
     sessions = write_slam_like_survey(
         root,
-        sessions=2,
-        duration_s=keyframes / 2 / 2.0,  # two sessions at 2 Hz
+        sessions=sessions_n,
+        duration_s=keyframes / sessions_n / 2.0,  # keyframes at 2 Hz
         keyframe_hz=2.0,
         width=640,
         height=360,
@@ -119,25 +142,97 @@ def subset(sessions: list[SlamLikeSession], fraction: float, root: Path) -> list
         truth = Trajectory(s.truth_world_from_cam.stamps_ns[:n], s.truth_world_from_cam.poses[:n])
         write_tum(slam.keyframes_tum, estimate)
         for stamp in estimate.stamps_ns.tolist():
-            slam.keyframe_image(stamp).symlink_to(source.keyframe_image(stamp))
+            slam.keyframe_image(stamp).symlink_to(source.keyframe_image(stamp).resolve())
         out.append(SlamLikeSession(folder, s.world_from_session, truth, estimate))
     return out
 
 
 def run_ours(
     sessions: list[SlamLikeSession], options: SfmOptions, work: Path
-) -> tuple[dict[str, Any], float, Path]:
+) -> tuple[dict[str, Any], float, float, Path]:
+    """Our stage on `sessions`; its stats, wall seconds, CPU seconds and output folder."""
     shutil.rmtree(work, ignore_errors=True)  # a rerun in the same --work starts afresh
     merge = write_merge_like(work / "merge", sessions, placed=[True] * len(sessions))
     out = work / "sfm"
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), cpu_s()
     run(options, [merge], out, overwrite=True)
-    total = time.perf_counter() - start
-    return SfmFolder(out).read_stats(), total, out
+    total, cpu = time.perf_counter() - start, cpu_s() - start_cpu
+    return SfmFolder(out).read_stats(), total, cpu, out
+
+
+def worst_ate_m(out: Path, sessions: list[SlamLikeSession], align: Align) -> float:
+    """The worst session's ATE of our refined keyframes (m)."""
+    return max(
+        ate(
+            read_tum(SfmFolder(out).session_keyframes(s.folder.name)),
+            s.truth_world_from_cam,
+            align=align,
+        ).rmse_m
+        for s in sessions
+    )
+
+
+def refine_only(
+    sessions: list[SlamLikeSession], options: SfmOptions, work: Path
+) -> tuple[dict[str, Any], float, float, dict[str, np.ndarray]]:
+    """The refinement alone on a copy of the database an earlier `run_ours` left in `work`;
+    stats-like rounds and counts, wall and CPU seconds, refined `T_W_C` by image name."""
+    from postproc.sfm.inputs import read_inputs
+    from postproc.sfm.refine import refine_with_priors
+    from postproc.sfm.stage import build_keyframes
+
+    database = SfmFolder(work / "sfm").database
+    if not database.is_file():
+        raise SystemExit(f"{database}: missing (run once without --refine-only first)")
+    keyframes, _ = build_keyframes(read_inputs([work / "merge"]), options)
+    copy = work / "refine_only.db"
+    shutil.copyfile(database, copy)
+    start, start_cpu = time.perf_counter(), cpu_s()
+    result = refine_with_priors(copy, keyframes, options.refine)
+    total, cpu = time.perf_counter() - start, cpu_s() - start_cpu
+    copy.unlink()
+    model = result.reconstruction
+    stats = {
+        "keyframes": len(keyframes),
+        "registered_images": int(model.num_reg_images()),
+        "points3D": int(model.num_points3D()),
+        "mean_track_length": float(model.compute_mean_track_length()),
+        "mean_reprojection_error_px": float(model.compute_mean_reprojection_error()),
+        "rounds": result.rounds,
+    }
+    return stats, total, cpu, result.world_from_cam
+
+
+def refined_ate_m(
+    world_from_cam: dict[str, np.ndarray], sessions: list[SlamLikeSession], align: Align
+) -> float:
+    """The worst session's ATE of refined `T_W_C` by image name (m; keyframes in the model)."""
+    worst = 0.0
+    for s in sessions:
+        truth = s.truth_world_from_cam
+        names = [f"{s.folder.name}/{t}.png" for t in truth.stamps_ns.tolist()]
+        keep = [i for i, name in enumerate(names) if name in world_from_cam]
+        refined = Trajectory(
+            truth.stamps_ns[keep], np.stack([world_from_cam[names[i]] for i in keep])
+        )
+        kept = Trajectory(truth.stamps_ns[keep], truth.poses[keep])
+        worst = max(worst, ate(refined, kept, align=align).rmse_m)
+    return worst
+
+
+def print_rounds(rounds: list[dict[str, float]]) -> None:
+    for k, r in enumerate(rounds, 1):
+        capped = r.get("adjusted_observations_per_point", r.get("observations_per_point", 0.0))
+        print(
+            f"  round {k} ({'rebuilt' if r['rebuilt_tracks'] else 'first'} pass): BA "
+            f"{r['bundle_adjust_s']:.1f} s, tracks {r['tracks_s']:.1f} s, {r['points']:.0f} "
+            f"points, {r.get('observations_per_point', 0.0):.1f} observations per point "
+            f"({capped:.1f} adjusted), p95 camera move {r['p95_camera_move_m'] * 100:.1f} cm"
+        )
 
 
 def print_ours(
-    stats: dict[str, Any], total: float, out: Path, sessions: list[SlamLikeSession]
+    stats: dict[str, Any], total: float, cpu: float, out: Path, sessions: list[SlamLikeSession]
 ) -> None:
     sec = stats["seconds"]
     n = stats["keyframes"]
@@ -146,8 +241,9 @@ def print_ours(
         "  time: extract {extract_s:.1f} s, pairs {pairs_s:.2f} s, match {match_s:.1f} s, "
         "triangulate {triangulate_s:.1f} s, BA rounds {bundle_adjust_s:.1f} s".format(**sec)
         + f", rebuilt tracks + BA rounds {sec.get('rebuild_tracks_s', 0.0):.1f} s"
-        + f", total {total:.1f} s ({total / n:.3f} s/keyframe; load {load()})"
+        + f", total {total:.1f} s ({total / n:.3f} s/keyframe; {cpu:.1f} s CPU; load {load()})"
     )
+    print_rounds(stats["rounds"])
     print(
         f"  {stats['registered_images']} registered, {stats['points3D']} points, "
         f"{stats['matches']['keypoints'] / n:.0f} keypoints/image, reprojection "
@@ -350,7 +446,13 @@ def baseline(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--keyframes", type=int, default=600, help="survey size, 2 sessions")
+    parser.add_argument("--keyframes", type=int, default=600, help="survey size, all sessions")
+    parser.add_argument("--sessions", type=int, default=2, help="simulated dives")
+    parser.add_argument(
+        "--ba-max-track-length",
+        type=int,
+        help="observations per point in each adjustment (0: no cap; default: the stage's)",
+    )
     parser.add_argument("--fractions", default="0.27,0.54,1", help="sizes our stage runs at")
     parser.add_argument(
         "--baseline-fractions", default="0.54", help="sizes the baseline runs at ('' for none)"
@@ -362,28 +464,76 @@ def main() -> None:
     parser.add_argument(
         "--sample-images", type=int, default=60, help="images timed at default extraction"
     )
+    parser.add_argument(
+        "--refine-only",
+        action="store_true",
+        help="rerun only the refinement on the databases an earlier run left in --work",
+    )
     parser.add_argument("--work", type=Path, help="keep data and outputs here")
     args = parser.parse_args()
-    work = args.work or Path(tempfile.mkdtemp(prefix="bench_sfm_"))
+    # Absolute: the merge folder and the image links name the session folders.
+    work = (args.work or Path(tempfile.mkdtemp(prefix="bench_sfm_"))).resolve()
     work.mkdir(parents=True, exist_ok=True)
-    sessions = survey(work, args.keyframes)
+    sessions = survey(work, args.keyframes, args.sessions)
     options = SfmOptions(features=FeatureOptions(num_threads=args.threads))
     options.refine.num_threads = args.threads
+    if args.ba_max_track_length is not None:
+        options.refine.ba_max_track_length = args.ba_max_track_length or None
     print(
         f"ours: {options.features.max_num_features} SIFT features, first octave "
         f"{options.features.first_octave or 'auto'}, sequential "
         f"{options.pairs.sequential_neighbours} + spatial {options.pairs.spatial_neighbours} "
-        f"pairs per keyframe; {os.cpu_count()} cores, load {load()}"
+        f"pairs per keyframe; at most {options.refine.ba_max_track_length or 'all'} "
+        f"observations per point in each adjustment; {os.cpu_count()} cores, load {load()}"
     )
 
     fractions = [float(f) for f in args.fractions.split(",") if f]
     baseline_at = {float(f) for f in args.baseline_fractions.split(",") if f}
     rows = []
+    if args.refine_only:
+        baseline_at = set()
     for fraction in sorted(set(fractions) | baseline_at):
         part = subset(sessions, fraction, work / f"part_{fraction:.2f}")
-        stats, total, out = run_ours(part, options, work / f"ours_{fraction:.2f}")
-        print_ours(stats, total, out, part)
-        rows.append((stats["keyframes"], stats["pairs"]["total"], total, stats["seconds"]))
+        if args.refine_only:
+            stats, total, cpu, poses = refine_only(part, options, work / f"ours_{fraction:.2f}")
+            print(
+                f"\n== ours, refinement only: {stats['keyframes']} keyframes, "
+                f"{stats['registered_images']} registered, {stats['points3D']} points, "
+                f"{total:.1f} s wall, {cpu:.1f} s CPU (load {load()})"
+            )
+            print_rounds(stats["rounds"])
+            rows.append(
+                {
+                    "keyframes": stats["keyframes"],
+                    "wall_s": total,
+                    "cpu_s": cpu,
+                    "observations_per_point": max(
+                        (r.get("observations_per_point", 0.0) for r in stats["rounds"]),
+                        default=0.0,
+                    ),
+                    "track_length": stats["mean_track_length"],
+                    "ate_none_m": refined_ate_m(poses, part, "none"),
+                    "ate_sim3_m": refined_ate_m(poses, part, "sim3"),
+                }
+            )
+            continue
+        stats, total, cpu, out = run_ours(part, options, work / f"ours_{fraction:.2f}")
+        print_ours(stats, total, cpu, out, part)
+        rows.append(
+            {
+                "keyframes": stats["keyframes"],
+                "pairs": stats["pairs"]["total"],
+                "wall_s": total,
+                "cpu_s": cpu,
+                "steps": stats["seconds"],
+                "observations_per_point": max(
+                    (r.get("observations_per_point", 0.0) for r in stats["rounds"]), default=0.0
+                ),
+                "track_length": stats["mean_track_length"],
+                "ate_none_m": worst_ate_m(out, part, "none"),
+                "ate_sim3_m": worst_ate_m(out, part, "sim3"),
+            }
+        )
         if fraction not in baseline_at:
             continue
         n = stats["keyframes"]
@@ -398,14 +548,7 @@ def main() -> None:
         )
         sec = stats["seconds"]
         mapping_ours = sec["refine_s"]
-        ours_ate = max(
-            ate(
-                read_tum(SfmFolder(out).session_keyframes(s.folder.name)),
-                s.truth_world_from_cam,
-                align="sim3",
-            ).rmse_m
-            for s in part
-        )
+        ours_ate = rows[-1]["ate_sim3_m"]
         defaults = b["defaults_extract_s"] + b["defaults_exhaustive_s"] + b["mapping_s"]
         same = sec["extract_s"] + b["ours_exhaustive_s"] + b["mapping_s"]
         print(f"\n== ratio at {n} keyframes (load {load()})")
@@ -432,12 +575,33 @@ def main() -> None:
         )
 
     print(f"\n== scaling (first part of each session, same density; load {load()})")
-    for k, pairs, seconds, steps in sorted(rows, key=lambda r: r[0]):
-        print(
-            f"  {k:5d} keyframes {pairs:6d} pairs: total {seconds:6.1f} s "
-            f"({seconds / k:.3f} s/keyframe; extract {steps['extract_s']:.1f}, "
-            f"match {steps['match_s']:.1f}, refine {steps['refine_s']:.1f})"
+    rows.sort(key=lambda r: r["keyframes"])
+    what = "refinement" if args.refine_only else "total"
+    for r in rows:
+        steps = r.get("steps")
+        detail = (
+            f"; extract {steps['extract_s']:.1f}, match {steps['match_s']:.1f}, refine "
+            f"{steps['refine_s']:.1f} s wall"
+            if steps
+            else ""
         )
+        print(
+            f"  {r['keyframes']:5d} keyframes: {what} {r['wall_s']:6.1f} s wall, "
+            f"{r['cpu_s']:6.1f} s CPU ({r['cpu_s'] / r['keyframes']:.3f} s/keyframe{detail}); "
+            f"largest mean observations per point {r['observations_per_point']:.1f}, final "
+            f"track length {r['track_length']:.1f}; worst session ATE "
+            f"{r['ate_none_m'] * 100:.2f} cm (no alignment), {r['ate_sim3_m'] * 100:.2f} cm (sim3)"
+        )
+    if len(rows) > 1 and rows[-1]["keyframes"] > rows[0]["keyframes"]:
+        ratio = np.log(rows[-1]["keyframes"] / rows[0]["keyframes"])
+        k_cpu = np.log(rows[-1]["cpu_s"] / rows[0]["cpu_s"]) / ratio
+        k_wall = np.log(rows[-1]["wall_s"] / rows[0]["wall_s"]) / ratio
+        line = f"  k of the {what} ({rows[0]['keyframes']} -> {rows[-1]['keyframes']} "
+        line += f"keyframes): CPU {k_cpu:.2f}, wall {k_wall:.2f}"
+        if not args.refine_only:
+            refine_s = [r["steps"]["refine_s"] for r in (rows[0], rows[-1])]
+            line += f" (refinement alone, wall: {np.log(refine_s[1] / refine_s[0]) / ratio:.2f})"
+        print(line)
     print(f"\n(work folder: {work})")
 
 

@@ -23,6 +23,12 @@ it worse still (the priors' weight is not the cause). So the rebuild pass
 throws those tracks away and rebuilds them at the refined poses with COLMAP's
 default thresholds, then adjusts again, with the same priors, until converged.
 
+Each adjustment sees at most `RefineOptions.ba_max_track_length` observations of a
+point (`cap_tracks`, evenly spread over the track's keyframes); the track completion
+right after it adds the rest back. On a dive that keeps revisiting the wreck the tracks
+lengthen with the dive and an adjustment's cost per keyframe grows with them; capped, it
+bounds that growth.
+
 Sessions without a world pose (no shared target in the merge) are tied in
 where natural features allow: their keyframes are registered one by one by
 absolute pose estimation against the model (COLMAP's incremental
@@ -157,6 +163,43 @@ def _camera_moves_m(before: dict[str, FloatArray], after: dict[str, FloatArray])
     return np.array([float(np.linalg.norm(after[n][:3, 3] - before[n][:3, 3])) for n in common])
 
 
+def evenly_spaced(count: int, keep: int) -> list[int]:
+    """`keep` indices of `range(count)` spread evenly, the first and the last included
+    (all of them when `keep >= count`)."""
+    if keep >= count:
+        return list(range(count))
+    if keep == 1:
+        return [0]
+    return sorted({round(k * (count - 1) / (keep - 1)) for k in range(keep)})
+
+
+def cap_tracks(
+    reconstruction: pycolmap.Reconstruction,
+    observation_manager: pycolmap.ObservationManager,
+    max_length: int,
+) -> int:
+    """Drop observations of tracks longer than `max_length`; the number dropped.
+
+    Each long track keeps `max_length` observations spread evenly over its keyframes in
+    image order (the order the keyframes were written, in time per session), so a point
+    seen on several passes still ties them together. No point is deleted (`max_length`
+    >= 2). The dropped observations are only out of the model until the next track
+    completion, which adds back those that reproject well.
+    """
+    dropped = 0
+    for point3D_id in reconstruction.point3D_ids():
+        track = reconstruction.point3D(point3D_id).track
+        if track.length() <= max_length:
+            continue
+        elements = sorted((e.image_id, e.point2D_idx) for e in track.elements)
+        kept = set(evenly_spaced(len(elements), max_length))
+        for index, (image_id, point2D_idx) in enumerate(elements):
+            if index not in kept:
+                observation_manager.delete_observation(image_id, point2D_idx)
+                dropped += 1
+    return dropped
+
+
 class _Mapper:
     """One pycolmap mapper over one database cache (both must live together)."""
 
@@ -216,6 +259,15 @@ class _Mapper:
             t0 = time.perf_counter()
             self.mapper.complete_and_merge_tracks(self.tri_options)
             self.mapper.retriangulate(self.tri_options)
+            points = max(self.reconstruction.num_points3D(), 1)
+            observations = self.reconstruction.compute_num_observations()
+            dropped = 0
+            if self.options.ba_max_track_length:
+                dropped = cap_tracks(
+                    self.reconstruction,
+                    self.mapper.observation_manager,
+                    self.options.ba_max_track_length,
+                )
             t1 = time.perf_counter()
             self.mapper.adjust_global_bundle(self.mapper_options, self.ba_options)
             t2 = time.perf_counter()
@@ -237,6 +289,8 @@ class _Mapper:
                     "max_camera_move_m": move,
                     "p95_camera_move_m": typical,
                     "points": float(self.reconstruction.num_points3D()),
+                    "observations_per_point": observations / points,
+                    "adjusted_observations_per_point": (observations - dropped) / points,
                     "registered": float(self.reconstruction.num_reg_images()),
                     "mean_reprojection_error_px": float(
                         self.reconstruction.compute_mean_reprojection_error()

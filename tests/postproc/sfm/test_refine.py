@@ -60,6 +60,7 @@ def test_fill_missing_carries_the_nearest_correction() -> None:
         {"rebuilt_merge_max_reproj_error_px": 0.0},
         {"first_pass_converged_change_m": 0.0},
         {"ba_max_direct_sparse_images": -1},
+        {"ba_max_track_length": 2},
     ],
 )
 def test_refine_options_reject_bad_values(kwargs: dict[str, object]) -> None:

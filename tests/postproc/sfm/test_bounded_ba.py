@@ -1,0 +1,112 @@
+"""Bounded work per adjustment: long tracks capped for the bundle adjustment only."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from postproc.sfm.features import FeatureOptions
+from postproc.sfm.inputs import read_inputs
+from postproc.sfm.refine import (
+    RefineOptions,
+    _Mapper,
+    cap_tracks,
+    evenly_spaced,
+    refine_with_priors,
+)
+from postproc.sfm.stage import SfmOptions, build_keyframes, run
+from shared.trajectory import Trajectory, ate
+from sim.slam_like import SlamLikeSession, write_merge_like
+
+
+@pytest.fixture(scope="module")
+def matched(slam_survey: list[SlamLikeSession], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finished SfM run on the small survey (its database holds features and matches)."""
+    root = tmp_path_factory.mktemp("sfm_bounded")
+    merge = write_merge_like(root / "merge", slam_survey, placed=[True, True])
+    options = SfmOptions(
+        features=FeatureOptions(max_num_features=512, num_threads=2),
+        refine=RefineOptions(num_threads=2),
+    )
+    run(options, [merge], root / "sfm")
+    return root
+
+
+@pytest.mark.parametrize(
+    ("count", "keep", "expected"),
+    [(5, 9, [0, 1, 2, 3, 4]), (5, 5, [0, 1, 2, 3, 4]), (9, 3, [0, 4, 8]), (10, 4, [0, 3, 6, 9])],
+)
+def test_evenly_spaced_keeps_both_ends(count: int, keep: int, expected: list[int]) -> None:
+    assert evenly_spaced(count, keep) == expected
+
+
+def test_cap_tracks_keeps_every_point_and_bounds_its_observations(
+    matched: Path, tmp_path: Path
+) -> None:
+    keyframes, _ = build_keyframes(read_inputs([matched / "merge"]), SfmOptions())
+    database = tmp_path / "database.db"
+    shutil.copyfile(matched / "sfm" / "database.db", database)
+    placed = dict(zip(keyframes.names, keyframes.world_from_cam, strict=True))
+    mapper = _Mapper(database, placed, RefineOptions(num_threads=2))
+    mapper.triangulate()
+    mapper.mapper.complete_and_merge_tracks(mapper.tri_options)
+    reconstruction = mapper.reconstruction
+    before = {
+        i: sorted(e.image_id for e in reconstruction.point3D(i).track.elements)
+        for i in reconstruction.point3D_ids()
+    }
+    cap = 3
+    long_tracks = [images for images in before.values() if len(images) > cap]
+    assert len(long_tracks) > 0.2 * len(before)  # the cap has work to do here
+    dropped = cap_tracks(reconstruction, mapper.mapper.observation_manager, cap)
+    assert dropped == sum(len(images) - cap for images in long_tracks)
+    assert reconstruction.point3D_ids() == set(before)  # every point still triangulated
+    for point3D_id, images in before.items():
+        after = sorted(e.image_id for e in reconstruction.point3D(point3D_id).track.elements)
+        assert len(after) == min(len(images), cap)
+        # The first and the last keyframe seeing the point stay: the span is kept.
+        assert after[0] == images[0] and after[-1] == images[-1]
+    assert reconstruction.compute_num_observations() == sum(map(len, before.values())) - dropped
+    mapper.close()
+
+
+def _worst_sim3_m(result_poses: dict[str, np.ndarray], sessions: list[SlamLikeSession]) -> float:
+    worst = 0.0
+    for session in sessions:
+        truth = session.truth_world_from_cam
+        names = [f"{session.folder.name}/{t}.png" for t in truth.stamps_ns.tolist()]
+        keep = [i for i, name in enumerate(names) if name in result_poses]
+        assert len(keep) >= 0.9 * len(names)
+        refined = Trajectory(
+            truth.stamps_ns[keep], np.stack([result_poses[names[i]] for i in keep])
+        )
+        kept = Trajectory(truth.stamps_ns[keep], truth.poses[keep])
+        worst = max(worst, ate(refined, kept, align="sim3").rmse_m)
+    return worst
+
+
+def test_capped_adjustment_stays_accurate_and_keeps_full_tracks(
+    matched: Path, slam_survey: list[SlamLikeSession], tmp_path: Path
+) -> None:
+    keyframes, _ = build_keyframes(read_inputs([matched / "merge"]), SfmOptions())
+    errors: dict[int | None, float] = {}
+    for cap in (None, 3):
+        database = tmp_path / f"cap_{cap}.db"
+        shutil.copyfile(matched / "sfm" / "database.db", database)
+        options = RefineOptions(num_threads=2, ba_max_track_length=cap)
+        result = refine_with_priors(database, keyframes, options)
+        adjusted = [r["adjusted_observations_per_point"] for r in result.rounds]
+        observations = [r["observations_per_point"] for r in result.rounds]
+        if cap is None:
+            assert adjusted == observations
+        else:
+            # Fewer observations in every adjustment, at most `cap` per point...
+            assert all(a < o for a, o in zip(adjusted, observations, strict=True))
+            assert max(adjusted) <= cap
+            # ...while the model keeps the longer tracks (completed after each adjustment).
+            assert result.reconstruction.compute_mean_track_length() > cap
+        errors[cap] = _worst_sim3_m(result.world_from_cam, slam_survey)
+    assert errors[3] < 1.25 * errors[None] + 0.002, errors
