@@ -157,7 +157,13 @@ FEATURE_METHODS = (
     ),
     (
         "targets + features",
-        MergeOptions(method="ours", dof=6, tilt_sigma_deg=SIM_TILT_SIGMA_DEG, plot=False),
+        MergeOptions(
+            method="ours",
+            dof=6,
+            tilt_sigma_deg=SIM_TILT_SIGMA_DEG,
+            natural_features=True,
+            plot=False,
+        ),
     ),
 )
 NO_TARGETS = FEATURE_METHODS[0][0]

@@ -473,6 +473,33 @@ def local_frame_variance(model: DriftModel, target_times_s: npt.ArrayLike) -> Fl
     return np.asarray(np.outer(np.maximum(scale, 0.0), model.drift_rate), dtype=np.float64)
 
 
+def drift_weights(
+    times_s: npt.ArrayLike,
+    model: DriftModel,
+    *,
+    observation_variance: npt.ArrayLike | None = None,
+) -> FloatArray:
+    """The weights (N, 6) `drift_weighted_mean` gives its N observations, per axis.
+
+    Each column sums to 1: the mean's error is `Σ_i w_i (d(τ_i) + e_i)`, which tells
+    how much of which moments of the session's drift it carries (`joint.DriftShare`).
+    """
+    tau = np.maximum(np.asarray(times_s, dtype=np.float64).reshape(-1), 0.0)
+    n = tau.shape[0]
+    extra = (
+        np.zeros((n, 6))
+        if observation_variance is None
+        else np.asarray(observation_variance, dtype=np.float64).reshape(n, 6)
+    )
+    shared = np.minimum.outer(tau, tau)
+    out = np.zeros((n, 6))
+    for k in range(6):
+        sigma = model.drift_rate[k] * shared + np.diag(model.noise[k] + extra[:, k])
+        solved = np.linalg.solve(sigma, np.ones(n))
+        out[:, k] = solved / np.sum(solved)
+    return out
+
+
 def drift_weighted_mean(
     poses: npt.ArrayLike,
     times_s: npt.ArrayLike,

@@ -6,7 +6,7 @@ frame (held at the identity). Constraints:
 
 * `Edge`: a measured relative pose `T_parent_child` with its 6x6 covariance:
   a target's drift-weighted pose in a session (`T_S_m`), or a natural-feature
-  pair's drift-aware mean (`T_Sa_Sb`, `places.pair_drift_mean`).
+  pair's drift-aware mean (`T_Sa_Sb`, `places.pair_place_mean`).
 * gravity (`tilt_sigma_rad`): every session frame is gravity-aligned by its
   IMU up to its roll/pitch error σ, so each session's tilt in W gets a
   zero-mean prior of σ√2 per axis (both frames err); dof 4 holds it at zero.
@@ -14,20 +14,27 @@ frame (held at the identity). Constraints:
   each session's z offset in W gets a zero-mean prior of σ√2.
 
 Each session's drift model is inside the edges' covariances (a constraint far
-in time from the session anchor carries the drift since). The estimate is
-Gauss-Newton on the Mahalanobis cost with Huber weights on each edge (an edge
-whose whitened residual exceeds `huber_k` is down-weighted and flagged);
-the covariance is the inverse of the weighted Hessian, in `averaging`'s
-convention (6x6 of `[δθ, δt]`, `R = Exp(δθ) R̄`, `t = t̄ + δt` in W, rotation
-first, radians and metres). Edges of one session are treated as independent
-(their shared drift before the earliest of them is not modelled), which is the
-approximation to keep in mind when reading the covariance.
+in time from the session anchor carries the drift since). Two constraints of one
+session share the drift up to the earlier of them: a target filmed at 60 s and a
+natural-feature place filmed at 40 s both carry the drift of the first 40 s, so
+their errors are correlated, and treating them as independent counts that drift
+twice and leans on it (targets and features together were then worse than targets
+alone on the simulated wreck). An edge's `drift` terms say which weighted
+combination of its session's random walk it carries (`DriftShare`); with the
+sessions' `drift_rates`, the estimate uses the full covariance of all edges
+together, off-diagonal blocks `Σ_ef = A_e diag(q wₑᵀ min(τₑ, τ_f) w_f) A_fᵀ`.
+
+The estimate is Gauss-Newton on the Mahalanobis cost with Huber weights on each
+edge (an edge whose whitened residual, by its own covariance, exceeds `huber_k` is
+down-weighted and flagged); the covariance is the inverse of the weighted Hessian,
+in `averaging`'s convention (6x6 of `[δθ, δt]`, `R = Exp(δθ) R̄`, `t = t̄ + δt` in
+W, rotation first, radians and metres).
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -42,8 +49,28 @@ FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)
+class DriftShare:
+    """The part of an edge's error that is one session's SLAM drift.
+
+    The edge's residual holds `Σ_i gains[i] @ d(times_s[i])` of the session's random
+    walk `d` (6,) `[δθ, δt]` (rotation about the camera, then a shift, in the session
+    frame; zero at its anchor). times_s (N,): seconds since the anchor; gains
+    (N, 6, 6): for a mean of N observations, each one's weight (per axis, a diagonal)
+    times how its drift enters the edge's residual.
+    """
+
+    session: str
+    times_s: FloatArray
+    gains: FloatArray
+
+
+@dataclass(frozen=True)
 class Edge:
-    """A measured `T_parent_child` (4, 4) with covariance (6, 6); kind: "target" or "features"."""
+    """A measured `T_parent_child` (4, 4) with covariance (6, 6); kind: "target" or "features".
+
+    drift: the session drift it carries (`DriftShare`), for its correlation with the
+    other edges of the same sessions; empty: independent of every other edge.
+    """
 
     kind: str
     label: str
@@ -51,6 +78,54 @@ class Edge:
     child: str
     parent_from_child: FloatArray
     covariance: FloatArray
+    drift: tuple[DriftShare, ...] = ()
+
+
+def shared_drift_covariance(e: Edge, f: Edge, drift_rates: Mapping[str, FloatArray]) -> FloatArray:
+    """Cross-covariance (6, 6) of two edges' residuals through their sessions' common drift.
+
+    A random walk with variance rate q (6,) per second has `cov(d(s), d(t)) = q min(s, t)`
+    per axis; negative times count as 0. Sessions without a rate give nothing.
+    """
+    out = np.zeros((6, 6))
+    for a in e.drift:
+        for b in f.drift:
+            if a.session != b.session or a.session not in drift_rates:
+                continue
+            shared = np.minimum.outer(np.maximum(a.times_s, 0.0), np.maximum(b.times_s, 0.0))
+            rate = np.asarray(drift_rates[a.session], dtype=np.float64)
+            out += np.einsum("iak,k,ij,jbk->ab", a.gains, rate, shared, b.gains)
+    return out
+
+
+def _joint_covariance(
+    edges: Sequence[Edge], drift_rates: Mapping[str, FloatArray] | None
+) -> FloatArray:
+    """(6E, 6E) covariance of all edges' residuals: own blocks plus shared drift.
+
+    The cross terms come from the drift model, the own blocks from each edge's
+    estimate (never tighter than the model); should the whole still not be positive
+    definite, the cross terms are halved until it is.
+    """
+    size = 6 * len(edges)
+    own = np.zeros((size, size))
+    cross = np.zeros((size, size))
+    for i, e in enumerate(edges):
+        own[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = 0.5 * (e.covariance + e.covariance.T)
+        if drift_rates is None:
+            continue
+        for j in range(i + 1, len(edges)):
+            block = shared_drift_covariance(e, edges[j], drift_rates)
+            cross[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] = block
+            cross[6 * j : 6 * j + 6, 6 * i : 6 * i + 6] = block.T
+    for _ in range(20):
+        total = own + cross
+        try:
+            np.linalg.cholesky(total)
+            return total
+        except np.linalg.LinAlgError:
+            cross *= 0.5
+    return own
 
 
 @dataclass(frozen=True)
@@ -157,6 +232,7 @@ def solve_joint(
     *,
     tilt_sigma_rad: float | None,
     depth_sigma_m: float | None = None,
+    drift_rates: Mapping[str, FloatArray] | None = None,
     huber_k: float = 4.1,
     reject_k: float = 12.0,
     max_iterations: int = 30,
@@ -166,7 +242,9 @@ def solve_joint(
     sessions: the session nodes (the gravity and depth priors apply to them).
     tilt_sigma_rad: each session's roll/pitch error (rad, 1 sigma per axis), None for
     no gravity prior. depth_sigma_m: each session's absolute-depth error (m), None
-    when the sessions are not depth-fused. huber_k: whitened residual norm beyond
+    when the sessions are not depth-fused. drift_rates: per session its random-walk
+    variance rates (6,) (rad²/s, m²/s), for the edges' shared drift (`DriftShare`);
+    None: every edge independent. huber_k: whitened residual norm beyond
     which an edge is down-weighted (4.1: the 99 % point of chi-square with 6 dof);
     reject_k: beyond which it is dropped once the Huber estimate has converged.
     Raises ValueError when the reference is not a session or a sigma is not positive.
@@ -193,6 +271,7 @@ def solve_joint(
     weights = np.ones(len(used))
     hessian = np.zeros((size, size))
     iterations = 0
+    joint_covariance = _joint_covariance(used, drift_rates)
     # Huber weights first; then edges beyond `reject_k` (gross outliers, which even a
     # Huber weight lets pull) are dropped and the estimate converges again.
     saved: tuple[dict[str, FloatArray], FloatArray, FloatArray] | None = None
@@ -203,16 +282,26 @@ def solve_joint(
             iterations += 1
             hessian = np.zeros((size, size))
             gradient = np.zeros(size)
-            for k, (e, info) in enumerate(zip(used, informations, strict=True)):
-                r = _edge_residual(e, poses)
+            current = [_edge_residual(e, poses) for e in used]
+            for k, (r, info) in enumerate(zip(current, informations, strict=True)):
                 whitened = float(np.sqrt(max(float(r @ info @ r), 0.0)))
                 if whitened > reject:
                     weights[k] = 0.0
-                    continue
-                weights[k] = 1.0 if whitened <= huber_k else huber_k / whitened
-                jacobian = _edge_jacobian(e, poses, index, size)
-                hessian += weights[k] * jacobian.T @ info @ jacobian
-                gradient -= weights[k] * jacobian.T @ info @ r
+                else:
+                    weights[k] = 1.0 if whitened <= huber_k else huber_k / whitened
+            kept = np.flatnonzero(weights > 0)
+            if len(kept):
+                rows = (6 * kept[:, None] + np.arange(6)).reshape(-1)
+                # A Huber weight w scales the edge's covariance by 1/w (IRLS); the
+                # dropped edges are marginalised out (their rows and columns removed).
+                scale = np.repeat(1.0 / np.sqrt(weights[kept]), 6)
+                information = np.linalg.inv(
+                    joint_covariance[np.ix_(rows, rows)] * np.outer(scale, scale)
+                )
+                jacobian = np.vstack([_edge_jacobian(used[k], poses, index, size) for k in kept])
+                stacked = np.concatenate([current[k] for k in kept])
+                hessian += jacobian.T @ information @ jacobian
+                gradient -= jacobian.T @ information @ stacked
             for node, what, variance in priors:
                 i = 6 * index[node]
                 if what == "tilt":

@@ -17,7 +17,6 @@ from typing import Any, cast
 import numpy as np
 import numpy.typing as npt
 
-from postproc.merge.averaging import pose_residuals
 from postproc.merge.places import (
     KeyframeFeatures,
     LocalMap,
@@ -25,11 +24,10 @@ from postproc.merge.places import (
     PlaceOptions,
     build_vocabulary,
     candidate_clusters,
-    candidate_noise,
     consistent_candidates,
     extract_features,
     local_map,
-    pair_drift_mean,
+    pair_place_mean,
     place_candidates,
     verify_candidate,
     weighted_pose_mean,
@@ -196,20 +194,28 @@ def _match_pair(
         + [options.noise_floor_translation_m**2] * 3
     )
     clusters = candidate_clusters(times_a, times_b, gap_s=options.place_gap_s)
-    noise, shared = candidate_noise(pose_residuals(chosen, start), clusters, floor=floor)
-    pose, covariance = pair_drift_mean(
+    pair = pair_place_mean(
         chosen,
         times_a,
         times_b,
+        np.array([pose_a[v[1]][:3, 3] for v in kept]),
+        np.array([(v[2].a_from_b @ pose_b[v[0]])[:3, 3] for v in kept]),
         rate_a=drift_rates[a.name],
         rate_b=drift_rates[b.name],
-        noise=noise,
-        start=start,
         clusters=clusters,
-        shared_noise=shared,
+        floor=floor,
+        start=start,
+        fixed_axes=2,
     )
+    pose, covariance = pair.a_from_b, pair.covariance.copy()
     # Roll and pitch come from gravity, not from the images (`refine_yaw_translation`).
+    covariance[:2, :] = 0.0
+    covariance[:, :2] = 0.0
     covariance[0, 0] = covariance[1, 1] = tilt_variance_rad2
+    evidence.gains_a = pair.gains_a
+    evidence.gains_b = pair.gains_b
+    evidence.times_a_s = times_a
+    evidence.times_b_s = times_b
     evidence.mergeable = True
     evidence.reason = f"{len(chosen)} of {len(verified)} verified candidates agree"
     evidence.a_from_b = pose

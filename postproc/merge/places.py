@@ -21,10 +21,11 @@ transform `T_Sa_Sb`. Per pair of sessions (a, b):
    verified, agreeing candidates and the pair is not mergeable, with the
    evidence (scores, inlier counts) kept for the report.
 4. **Drift.** Each candidate carries the drift of a at its reference keyframe
-   and of b at its query keyframe, two random walks from the session anchors:
-   `pair_drift_mean` is the generalised least-squares mean with that
-   covariance (`q_a min(ta_i, ta_j) + q_b min(tb_i, tb_j) + s δ_ij` per axis),
-   so the result leans on the places both dives filmed early.
+   and of b at its query keyframe, two random walks from the session anchors,
+   and errors that rotate about the cameras, metres away from Sb's origin:
+   `pair_place_mean` is the generalised least-squares mean with that covariance
+   (each error modelled where it pivots), so the result leans on the places both
+   dives filmed early and its translation is not blurred by the candidates' yaw.
 
 Pure math and OpenCV calls on arrays: no file I/O (the stage reads images and
 poses). Covariances follow `averaging`: 6x6 of `[δθ, δt]`, rotation first,
@@ -621,64 +622,6 @@ def candidate_noise(
     return np.asarray(independent, dtype=np.float64), np.asarray(shared, dtype=np.float64)
 
 
-def pair_drift_mean(
-    poses: FloatArray,
-    times_a_s: FloatArray,
-    times_b_s: FloatArray,
-    *,
-    rate_a: FloatArray,
-    rate_b: FloatArray,
-    noise: FloatArray,
-    start: FloatArray,
-    clusters: npt.NDArray[np.int64] | None = None,
-    shared_noise: FloatArray | None = None,
-    iterations: int = 2,
-) -> tuple[FloatArray, FloatArray]:
-    """Generalised least-squares `T_Sa_Sb` from candidates of two drifting sessions.
-
-    poses: (N, 4, 4) candidates. times_*: (N,) seconds since each session's anchor
-    (negative counts as 0). rate_*: (6,) random-walk variance rates per axis
-    (rad²/s, m²/s); noise: (6,) per-candidate variance; clusters / shared_noise: the
-    candidates' places and the variance (6,) a place's candidates share. Per axis the
-    candidates' covariance is `q_a min(ta_i, ta_j) + q_b min(tb_i, tb_j) + c [same
-    place] + s δ_ij`: candidate i carries a's drift at its reference keyframe and b's
-    at its query (small-angle, axes independent). Returns (pose, diagonal 6x6
-    covariance, drift included, scaled up by the a posteriori variance factor when
-    the candidates scatter more than the model allows).
-    """
-    n = poses.shape[0]
-    ta = np.maximum(np.asarray(times_a_s, dtype=np.float64), 0.0)
-    tb = np.maximum(np.asarray(times_b_s, dtype=np.float64), 0.0)
-    shared_a = np.minimum.outer(ta, ta)
-    shared_b = np.minimum.outer(tb, tb)
-    same = (
-        np.zeros((n, n))
-        if clusters is None
-        else (np.asarray(clusters)[:, None] == np.asarray(clusters)[None]).astype(np.float64)
-    )
-    place = np.zeros(6) if shared_noise is None else np.asarray(shared_noise, dtype=np.float64)
-    mean = np.asarray(start, dtype=np.float64).copy()
-    variance = np.zeros(6)
-    for _ in range(max(iterations, 1)):
-        r = pose_residuals(poses, mean)
-        step = np.zeros(6)
-        for k in range(6):
-            sigma = (
-                rate_a[k] * shared_a + rate_b[k] * shared_b + place[k] * same + np.eye(n) * noise[k]
-            )
-            solved = np.linalg.solve(sigma, np.column_stack((np.ones(n), r[:, k])))
-            information = float(np.sum(solved[:, 0]))
-            step[k] = float(np.sum(solved[:, 1])) / information
-            # A posteriori variance factor: when the candidates scatter more than the
-            # model says (chi-square per degree of freedom above 1), the mean is that
-            # much less certain; never tighter than the model.
-            about = r[:, k] - step[k]
-            factor = float(about @ np.linalg.solve(sigma, about)) / max(n - 1, 1)
-            variance[k] = max(factor, 1.0) / information
-        mean = make_pose(so3_exp(step[:3]) @ mean[:3, :3], mean[:3, 3] + step[3:])
-    return mean, np.diag(variance)
-
-
 @dataclass
 class PairEvidence:
     """What place recognition found between sessions a (reference side) and b (queries).
@@ -686,6 +629,8 @@ class PairEvidence:
     candidates: (query stamp, reference stamp, score) tried; verified: those passing
     PnP and the gravity check with their inliers; consistent: stamps of the verified
     ones in the agreeing group; mergeable: at least `min_consistent` of them.
+    times_*_s, gains_*: the consistent candidates' times since each anchor and how
+    each session's drift there enters `a_from_b` (`PairMean`).
     """
 
     session_a: str
@@ -699,6 +644,10 @@ class PairEvidence:
     a_from_b: FloatArray | None = None
     covariance: FloatArray | None = None
     poses: FloatArray | None = None
+    times_a_s: FloatArray | None = None
+    times_b_s: FloatArray | None = None
+    gains_a: FloatArray | None = None
+    gains_b: FloatArray | None = None
 
     def summary(self) -> dict[str, object]:
         """The evidence as JSON-ready numbers."""
@@ -721,3 +670,122 @@ class PairEvidence:
 def angle_deg(a: FloatArray, b: FloatArray) -> float:
     """Rotation angle (deg) between two poses."""
     return float(np.rad2deg(rotation_angle_rad(a[:3, :3].T @ b[:3, :3])))
+
+
+def _skew(v: FloatArray) -> FloatArray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def pivot_jacobian(lever: FloatArray, rotation: FloatArray | None = None) -> FloatArray:
+    """(6, 6) map from an error `[ω, u]` pivoting about a point to the residual of
+    `T_Sa_Sb` (`[δθ, δt]`, pivoting about Sb's origin): `δθ = Rω`, `δt = Ru + Rω × lever`.
+
+    lever (3,): from the pivot to Sb's origin, in Sa; rotation: R from the error's frame
+    into Sa (identity when None).
+    """
+    R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    out = np.zeros((6, 6))
+    out[:3, :3] = R
+    out[3:, 3:] = R
+    out[3:, :3] = -_skew(np.asarray(lever, dtype=np.float64)) @ R
+    return out
+
+
+@dataclass(frozen=True)
+class PairMean:
+    """A pair's `T_Sa_Sb` (4, 4), its covariance (6, 6) and the drift it carries.
+
+    gains_a / gains_b (N, 6, 6): how the drift of session a at each candidate's
+    reference keyframe (of b at its query) enters the mean's error (`joint.DriftShare`).
+    """
+
+    a_from_b: FloatArray
+    covariance: FloatArray
+    gains_a: FloatArray
+    gains_b: FloatArray
+
+
+def pair_place_mean(
+    poses: FloatArray,
+    times_a_s: FloatArray,
+    times_b_s: FloatArray,
+    reference_positions: FloatArray,
+    query_positions: FloatArray,
+    *,
+    rate_a: FloatArray,
+    rate_b: FloatArray,
+    clusters: npt.NDArray[np.int64],
+    floor: FloatArray,
+    start: FloatArray,
+    fixed_axes: int = 0,
+    iterations: int = 2,
+) -> PairMean:
+    """Generalised least-squares `T_Sa_Sb` from candidates whose errors pivot about places.
+
+    A candidate is `T_Sa_Cq @ inv(T_Sb_Cq)`: an error of the query's pose or of the PnP
+    is a rotation about the query camera, the drift of a rotates about a's reference
+    camera, that of b about the query camera in b. Seen from Sb's origin (the pose's
+    convention) a rotation error ω about a camera a lever L away moves the translation
+    by ω × L: with levers of 10 m, 0.3 deg of yaw is 5 cm, and the candidates'
+    translations scatter with their yaw. Here each error is modelled where it pivots
+    (`pivot_jacobian`), so the translation is not blurred by the yaw, and the
+    covariance (full 6x6) keeps their coupling.
+
+    poses (N, 4, 4): candidates; times_* (N,): seconds since each session's anchor;
+    reference_positions / query_positions (N, 3): the reference camera and the query
+    camera in Sa (metres). rate_* (6,): drift variance rates (rad²/s, m²/s) of each
+    session in its pivot form `[ω, u]`. clusters (N,): the candidates' places
+    (`candidate_clusters`); the independent noise and a place's shared error are
+    estimated from the pivot-form residuals (`candidate_noise`, at least `floor` (6,)).
+    Per candidate i and j the covariance is
+    `A_i (q_a min(ta_i, ta_j)) A_jᵀ + B_i (q_b min(tb_i, tb_j)) B_jᵀ + Q_i (c [same
+    place] + s δ_ij) Q_jᵀ` (A, B, Q: pivots at the reference camera, the query camera
+    in b, the query camera in a). Scaled up by the a posteriori variance factor when the
+    candidates scatter more than that; fixed_axes: how many axes every candidate holds
+    at the same value by construction (2: roll and pitch from gravity), which carry no
+    scatter and are left out of the factor's degrees of freedom.
+    """
+    T = np.asarray(poses, dtype=np.float64)
+    n = T.shape[0]
+    ta = np.maximum(np.asarray(times_a_s, dtype=np.float64), 0.0)
+    tb = np.maximum(np.asarray(times_b_s, dtype=np.float64), 0.0)
+    same = (np.asarray(clusters)[:, None] == np.asarray(clusters)[None]).astype(np.float64)
+    mean = np.asarray(start, dtype=np.float64).copy()
+    design = np.tile(np.eye(6), (n, 1))
+    covariance: FloatArray = np.eye(6)
+    gain = np.zeros((6, 6 * n))
+    A = np.zeros((n, 6, 6))
+    B = np.zeros((n, 6, 6))
+    Q = np.zeros((n, 6, 6))
+    for _ in range(max(iterations, 1)):
+        r = pose_residuals(T, mean)
+        rotation = mean[:3, :3]
+        for i in range(n):
+            A[i] = pivot_jacobian(mean[:3, 3] - reference_positions[i])
+            B[i] = -pivot_jacobian(mean[:3, 3] - query_positions[i], rotation)
+            Q[i] = pivot_jacobian(mean[:3, 3] - query_positions[i])
+        pivoted = np.einsum("iab,ib->ia", np.linalg.inv(Q), r)
+        pivoted -= np.median(pivoted, axis=0)
+        noise, shared = candidate_noise(pivoted, clusters, floor=floor)
+        sigma = np.einsum("iak,k,ij,jbk->iajb", A, rate_a, np.minimum.outer(ta, ta), A)
+        sigma += np.einsum("iak,k,ij,jbk->iajb", B, rate_b, np.minimum.outer(tb, tb), B)
+        sigma += np.einsum("iak,k,ij,jbk->iajb", Q, shared, same, Q)
+        sigma += np.einsum("iak,k,ij,jbk->iajb", Q, noise, np.eye(n), Q)
+        sigma = sigma.reshape(6 * n, 6 * n)
+        solved = np.linalg.solve(sigma, np.column_stack((design, r.reshape(-1))))
+        information = design.T @ solved[:, :6]
+        covariance = np.asarray(np.linalg.inv(information), dtype=np.float64)
+        step = covariance @ (design.T @ solved[:, 6])
+        about = r.reshape(-1) - design @ step
+        dof = (6 - fixed_axes) * (n - 1)
+        factor = float(about @ np.linalg.solve(sigma, about)) / max(dof, 1)
+        covariance = covariance * max(factor, 1.0)
+        gain = np.linalg.inv(information) @ solved[:, :6].T
+        mean = make_pose(so3_exp(step[:3]) @ mean[:3, :3], mean[:3, 3] + step[3:])
+    blocks = gain.reshape(6, n, 6).transpose(1, 0, 2)
+    return PairMean(
+        a_from_b=mean,
+        covariance=0.5 * (covariance + covariance.T),
+        gains_a=np.einsum("iab,ibc->iac", blocks, A),
+        gains_b=np.einsum("iab,ibc->iac", blocks, B),
+    )

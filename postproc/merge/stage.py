@@ -85,13 +85,14 @@ from postproc.merge.averaging import (
     PoseAverage,
     clustered_covariance,
     drift_weighted_mean,
+    drift_weights,
     estimate_drift_model,
     fuse_pose_estimates,
     local_frame_variance,
     pose_residuals,
     robust_pose_mean,
 )
-from postproc.merge.joint import Edge, JointEstimate, solve_joint
+from postproc.merge.joint import DriftShare, Edge, JointEstimate, solve_joint
 from postproc.merge.options import MergeOptions as MergeOptions
 from postproc.merge.places import PairEvidence
 from shared.clock import ns_from_seconds, seconds_from_ns
@@ -199,9 +200,12 @@ def _build(
     tilt_prior_deg = None if dof == 4 else options.tilt_sigma_deg
     observations = _observe(options, sessions, grids, target_names) if grids else []
     drift_models: dict[str, DriftModel] = {}
+    shares: dict[tuple[str, str], DriftShare] = {}
 
     if options.method == "ours":
-        averages = _average_ours(options, sessions, target_names, observations, drift_models)
+        averages = _average_ours(
+            options, sessions, target_names, observations, drift_models, shares
+        )
     else:
         averages = _average_paper(sessions, target_names, observations)
     estimates = {
@@ -236,13 +240,13 @@ def _build(
             tilt_variance = 1.0
         else:
             tilt_variance = 2.0 * np.deg2rad(options.places.gravity_sigma_deg) ** 2
+        rates = _drift_rates(options, sessions, drift_models)
         pairs = match_sessions(
-            options.places,
-            sessions,
-            drift_rates=_drift_rates(options, sessions, drift_models),
-            tilt_variance_rad2=tilt_variance,
+            options.places, sessions, drift_rates=rates, tilt_variance_rad2=tilt_variance
         )
-        joint = _solve_joint(options, sessions, reference, dof, tilt_prior_deg, estimates, pairs)
+        joint = _solve_joint(
+            options, sessions, reference, dof, tilt_prior_deg, estimates, pairs, shares, rates
+        )
         placements = _joint_placements(joint, sessions)
     elif target_placements is not None:
         placements = target_placements
@@ -607,13 +611,15 @@ def _average_ours(
     target_names: Sequence[str],
     observations: Sequence[Observation],
     models: dict[str, DriftModel] | None = None,
+    shares: dict[tuple[str, str], DriftShare] | None = None,
 ) -> dict[str, dict[str, PoseAverage]]:
     """Per session and target: robust mean (outliers out), then the drift-weighted mean
     (or, with `drift_weighting` off, the robust mean with the local-frame variance).
 
     The drift model (per-keyframe noise, drift rate) is fitted once per session
     over all its targets' inliers, since the targets share that session's SLAM;
-    `models` (when given) receives it for the sessions where it was measured.
+    `models` (when given) receives it for the sessions where it was measured, and
+    `shares` per (session, target) the drift each drift-weighted mean carries.
     """
     averages: dict[str, dict[str, PoseAverage]] = {}
     for session in sessions:
@@ -699,6 +705,17 @@ def _average_ours(
                 start=average.pose,
                 observation_variance=extra[inliers],
             )
+            if shares is not None:
+                weights = drift_weights(
+                    _seconds(chosen, anchor_ns)[inliers],
+                    model,
+                    observation_variance=extra[inliers],
+                )
+                shares[session.name, name] = DriftShare(
+                    session.name,
+                    _seconds(chosen, anchor_ns)[inliers],
+                    weights[:, :, None] * np.eye(6)[None],
+                )
             averages[session.name][name] = dataclasses.replace(
                 average,
                 pose=pose,
@@ -728,15 +745,40 @@ def _solve_joint(
     tilt_prior_deg: float | None,
     estimates: dict[str, dict[str, TargetEstimate]],
     pairs: Sequence[PairEvidence],
+    shares: dict[tuple[str, str], DriftShare],
+    rates: dict[str, FloatArray],
 ) -> JointEstimate:
-    """Targets, natural-feature pairs, gravity and depth in one robust estimate."""
+    """Targets, natural-feature pairs, gravity and depth in one robust estimate.
+
+    shares: the drift each target mean carries, rates: each session's drift rates, so
+    that constraints of one session are correlated through its drift (`joint`).
+    """
     edges = [
-        Edge("target", f"{name}@{session}", session, f"target:{name}", e.pose, e.covariance)
+        Edge(
+            "target",
+            f"{name}@{session}",
+            session,
+            f"target:{name}",
+            e.pose,
+            e.covariance,
+            (shares[session, name],) if (session, name) in shares else (),
+        )
         for session, targets in estimates.items()
         for name, e in targets.items()
     ]
     for pair in pairs:
         if pair.mergeable and pair.a_from_b is not None and pair.covariance is not None:
+            drift: tuple[DriftShare, ...] = ()
+            if (
+                pair.gains_a is not None
+                and pair.gains_b is not None
+                and pair.times_a_s is not None
+                and pair.times_b_s is not None
+            ):
+                drift = (
+                    DriftShare(pair.session_a, pair.times_a_s, pair.gains_a),
+                    DriftShare(pair.session_b, pair.times_b_s, pair.gains_b),
+                )
             edges.append(
                 Edge(
                     "features",
@@ -745,6 +787,7 @@ def _solve_joint(
                     pair.session_b,
                     pair.a_from_b,
                     pair.covariance,
+                    drift,
                 )
             )
     if dof == 4:
@@ -759,6 +802,7 @@ def _solve_joint(
         edges,
         tilt_sigma_rad=tilt_sigma_rad,
         depth_sigma_m=options.depth_sigma_m if depth_fused else None,
+        drift_rates=rates,
     )
 
 

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from postproc.merge.align import tilt_vector_rad
-from postproc.merge.joint import Edge, connected_nodes, solve_joint
+from postproc.merge.joint import (
+    DriftShare,
+    Edge,
+    connected_nodes,
+    shared_drift_covariance,
+    solve_joint,
+)
 from shared.geometry import invert_pose, make_pose, pose_difference, so3_exp
 
 COVARIANCE = np.diag([1e-6] * 3 + [1e-4] * 3)
@@ -89,3 +95,44 @@ def test_connected_nodes_and_raise_paths():
         solve_joint("a", ["a"], edges, tilt_sigma_rad=0.0)
     with pytest.raises(ValueError, match="depth_sigma_m"):
         solve_joint("a", ["a"], edges, tilt_sigma_rad=None, depth_sigma_m=-1.0)
+
+
+def test_shared_drift_keeps_the_covariance_honest():
+    """Two constraints of session b filmed at 100 s and 110 s share b's first 100 s of
+    drift: counted as independent, the estimate claims twice the information it has."""
+    rate = np.array([1e-7] * 3 + [1e-5] * 3)
+    noise = np.array([1e-8] * 3 + [1e-6] * 3)
+    times = (100.0, 110.0)
+    eye = np.eye(6)[None]
+    d2: dict[bool, list[float]] = {True: [], False: []}
+    for seed in range(60):
+        rng = np.random.default_rng(seed)
+        first = rng.normal(0, np.sqrt(rate * times[0]))
+        walk = (first, first + rng.normal(0, np.sqrt(rate * (times[1] - times[0]))))
+        edges = []
+        for k, (t, drift) in enumerate(zip(times, walk, strict=True)):
+            d = drift + rng.normal(0, np.sqrt(noise))
+            # b's drift d enters T_a_b (b the child) as the inverse, on the right: -d here.
+            measured = make_pose(so3_exp(-d[:3]) @ TRUTH["b"][:3, :3], TRUTH["b"][:3, 3] - d[3:])
+            share = DriftShare("b", np.array([t]), -eye)
+            edges.append(
+                Edge("features", f"ab{k}", "a", "b", measured, np.diag(rate * t + noise), (share,))
+            )
+        for modelled in (True, False):
+            estimate = solve_joint(
+                "a",
+                ["a", "b"],
+                edges,
+                tilt_sigma_rad=None,
+                drift_rates={"b": rate} if modelled else None,
+            )
+            error = estimate.world_from_node["b"][:3, 3] - TRUTH["b"][:3, 3]
+            d2[modelled].append(
+                float(error @ np.linalg.solve(estimate.covariance["b"][3:, 3:], error))
+            )
+    # Mean squared Mahalanobis distance of 3-D errors: 3 when the covariance is right.
+    assert 2.0 < np.mean(d2[True]) < 4.2
+    assert np.mean(d2[False]) > 4.5
+    cross = shared_drift_covariance(edges[0], edges[1], {"b": rate})
+    np.testing.assert_allclose(cross, np.diag(rate * times[0]))
+    assert not shared_drift_covariance(edges[0], edges[1], {}).any()
