@@ -237,6 +237,25 @@ def preintegrate(
     return out
 
 
+def gyro_rotation(
+    imu: ImuSamples, start_ns: int, end_ns: int, gyro_bias_rad_s: FloatArray
+) -> FloatArray:
+    """`R_B0_Bt` (3, 3): the gyro's rotation over [start_ns, end_ns] (IMU clock), bias removed.
+
+    The rotation part of `preintegrate` (the same pieces and the same order of products),
+    with the exponentials of all pieces computed at once: it runs for every image.
+    """
+    from postproc.slam.backend import imu_intervals
+
+    R = np.eye(3)
+    if end_ns <= start_ns:
+        return R
+    _, gyro, dt = imu_intervals(imu, int(start_ns), int(end_ns))
+    for step in so3_exp((gyro - gyro_bias_rad_s) * dt[:, None]):
+        R = R @ step
+    return R
+
+
 def translation_direction(
     rays_a: FloatArray,
     rays_b: FloatArray,

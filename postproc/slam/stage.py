@@ -31,7 +31,8 @@ guess; when they do not (electronically stabilised video), the path comes from
 the images alone, gravity-aligned by the IMU (postproc.slam.stabilised).
 stats.json reports the check ("gyro_check*", "camera_imu_rigid", "mode").
 
-Images are decoded one thread ahead (`prefetch`). A trajectory whose
+Images are decoded one thread ahead and tracked one more thread ahead of the
+estimator (`prefetch`, `BiasBoard`). A trajectory whose
 keyframes move faster than `SlamOptions.max_speed_m_s` has diverged and is
 refused with a StageError rather than written.
 
@@ -58,15 +59,15 @@ import cv2
 import numpy as np
 
 from postproc.slam.estimator import SlamEstimator, SlamResult
-from postproc.slam.frontend import FrontendOptions, KltFrontend
+from postproc.slam.frontend import FrontendOptions, Image, KltFrontend
 from postproc.slam.gyro_check import (
     GyroCheck,
     GyroCheckOptions,
     check_gyro_against_images,
     visual_rotation,
 )
-from postproc.slam.initialization import preintegrate
-from postproc.slam.inputs import SlamInput, open_input
+from postproc.slam.initialization import gyro_rotation
+from postproc.slam.inputs import Frame, SlamInput, open_input
 from postproc.slam.loop_closure import Descriptors, orb_descriptors
 from postproc.slam.options import SlamOptions as SlamOptions
 from postproc.slam.stabilised import gravity_and_scale
@@ -113,23 +114,32 @@ def _resolve_calibration(
 
 
 def _gyro_rotation(
-    estimator: SlamEstimator, calibration: CameraCalibration, t0_ns: int, t1_ns: int
+    imu: ImuSamples,
+    calibration: CameraCalibration,
+    t0_ns: int,
+    t1_ns: int,
+    gyro_bias_rad_s: FloatArray,
 ) -> FloatArray | None:
     """`R_Cnow_Cprev` between two images from the gyro (None when the IMU does not cover)."""
-    imu = estimator.imu
     shift = ns_from_seconds(calibration.timeshift_cam_imu_s)
     a, b = t0_ns + shift, t1_ns + shift
     if a < imu.stamps_ns[0] or b > imu.stamps_ns[-1] or b <= a:
         return None
-    bias = (
-        np.asarray(estimator.backend.bias_of(estimator.backend.num_keyframes - 1).gyroscope())
-        if estimator.backend.num_keyframes
-        else np.zeros(3)
-    )
-    R_prev_now = preintegrate(imu, a, [b], bias)[0].delta_rotation
+    R_prev_now = gyro_rotation(imu, a, b, gyro_bias_rad_s)
     R_B_C = calibration.imu_from_cam[:3, :3]
     rotation: FloatArray = R_B_C.T @ R_prev_now.T @ R_B_C
     return rotation
+
+
+def _gyro_bias(estimator: SlamEstimator | VisualOnlyEstimator) -> FloatArray | None:
+    """The gyro bias (rad/s) of the estimator's last keyframe (zero before the start; None
+    without an IMU): what the frontend's rotation seeds use."""
+    if not isinstance(estimator, SlamEstimator):
+        return None
+    backend = estimator.backend
+    if not backend.num_keyframes:
+        return np.zeros(3)
+    return np.asarray(backend.bias_of(backend.num_keyframes - 1).gyroscope(), dtype=np.float64)
 
 
 def probe_gyro(
@@ -323,39 +333,49 @@ def _build(
         if options.use_imu
         else None
     )
-    min_step_ns = min_frame_step_ns(options.max_rate_hz)
-    previous_stamp: int | None = None
+    biases = BiasBoard(_gyro_bias(estimator), lag=PIPELINE_LAG_FRAMES)
+    imu = source.imu if isinstance(estimator, SlamEstimator) else None
+    tracked = _track_frames(
+        source.frames(),
+        frontend,
+        imu=imu,
+        calibration=calibration,
+        biases=biases,
+        max_frames=options.max_frames,
+        min_step_ns=min_frame_step_ns(options.max_rate_hz),
+    )
     first_stamp: int | None = None
     last_stamp = 0
-    for count, frame in enumerate(
-        progress(prefetch(source.frames()), total=total, desc="slam", unit="frame")
-    ):
-        if options.max_frames is not None and count >= options.max_frames:
-            break
-        if (
-            min_step_ns
-            and previous_stamp is not None
-            and frame.stamp_ns - previous_stamp < min_step_ns
-        ):
-            continue
-        rotation = (
-            _gyro_rotation(estimator, calibration, previous_stamp, frame.stamp_ns)
-            if previous_stamp is not None and isinstance(estimator, SlamEstimator)
-            else None
-        )
-        tracks = frontend.track(frame.stamp_ns, frame.image, cam_rotation_now_from_prev=rotation)
-        if len(tracks.track_ids) < options.min_tracks_ok:
-            tracking_failures += 1
-        previous_stamp = frame.stamp_ns
-        if coverage is not None and not coverage.covers(frame.stamp_ns):
-            # The IMU starts after or ends before this image: tracked (so the tracks
-            # run on), not estimated.
-            continue
-        decision = estimator.process(tracks, functools.partial(_describe, frontend, tracks))
-        if decision.is_keyframe:
-            _save_keyframe(folder, frame.stamp_ns, frame.image, frame.encoded_png)
-        first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
-        last_stamp = frame.stamp_ns
+    # The frontend (and, one thread further, the decoder) runs ahead of the estimator;
+    # OpenCV and the decoders release the GIL, so on two cores they overlap the backend.
+    stream = prefetch(tracked, depth=PIPELINE_LAG_FRAMES, name="slam-frontend")
+    # These threads are the parallelism: OpenCV's own worker threads on top of them
+    # took 65 s of CPU time against 48 s for the same result (one pair of runs, 40 s
+    # of 960x540 video, 2 shared cores).
+    opencv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        for sequence, item in enumerate(progress(stream, total=total, desc="slam", unit="frame")):
+            frame, tracks = item.frame, item.tracks
+            if len(tracks.track_ids) < options.min_tracks_ok:
+                tracking_failures += 1
+            if coverage is None or coverage.covers(frame.stamp_ns):
+                # (Outside the IMU's span an image is tracked, so the tracks run on, but
+                # not estimated.)
+                decision = estimator.process(
+                    tracks, functools.partial(_describe, item.image, tracks)
+                )
+                if decision.is_keyframe:
+                    _save_keyframe(folder, frame.stamp_ns, frame.image, frame.encoded_png)
+                first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
+                last_stamp = frame.stamp_ns
+            biases.publish(sequence, _gyro_bias(estimator))
+    finally:
+        biases.close()
+        close = getattr(stream, "close", None)
+        if close is not None:
+            close()
+        cv2.setNumThreads(opencv_threads)
     if coverage is not None:
         coverage.warn(source.name)
     try:
@@ -482,18 +502,134 @@ class ImuCoverage:
         }
 
 
+PIPELINE_LAG_FRAMES = 8
+"""How far (images) the frontend may run ahead of the estimator; the gyro bias that seeds
+its tracking is the one the estimator had this many images earlier (see `BiasBoard`)."""
+
+
 class _Failure:
     def __init__(self, error: BaseException) -> None:
         self.error = error
 
 
-def prefetch(items: Iterable[T], depth: int = 4) -> Iterator[T]:
-    """Iterate `items` in a background thread, up to `depth` ahead.
+class BiasBoard:
+    """The gyro bias the estimator held after each image, for the frontend thread.
 
-    Image decoding (PNG or H.264) releases the GIL, so on two cores it overlaps
-    the tracking and the backend instead of adding to them. An exception of the
-    producer is raised here, at the item where it happened; closing the
-    iterator early stops the producer.
+    The frontend seeds its optical flow with the gyro rotation between images, with the
+    estimator's current gyro bias removed. Run ahead in its own thread, it takes for
+    image n the bias published after image n - `lag` (the initial one before that),
+    waiting for it if the estimator is further behind: the result is the same however
+    the threads are scheduled (with `lag` 1, the same as running one after the other).
+    `close` wakes a waiting frontend (its rotations go unseeded until the pipeline
+    stops it).
+    """
+
+    def __init__(self, initial: FloatArray | None, *, lag: int) -> None:
+        if lag < 1:
+            raise ValueError(f"lag {lag}: expected at least 1 image")
+        self.lag = lag
+        self._initial = initial
+        self._published: dict[int, FloatArray | None] = {}
+        self._last = -1
+        self._closed = False
+        self._changed = threading.Condition()
+
+    def publish(self, sequence: int, bias: FloatArray | None) -> None:
+        """The estimator is done with image `sequence` (0, 1, ...) and now holds `bias`."""
+        with self._changed:
+            self._published[sequence] = bias
+            self._last = sequence
+            self._changed.notify_all()
+
+    def bias_for(self, sequence: int) -> FloatArray | None:
+        """The bias to seed image `sequence` with (waits for the estimator if needed;
+        None once closed)."""
+        wanted = sequence - self.lag
+        if wanted < 0:
+            return self._initial
+        with self._changed:
+            self._changed.wait_for(lambda: self._last >= wanted or self._closed)
+            if self._last < wanted:
+                return None
+            for old in [k for k in self._published if k < wanted]:
+                del self._published[old]
+            return self._published[wanted]
+
+    def close(self) -> None:
+        """No more biases: wake a waiting frontend."""
+        with self._changed:
+            self._closed = True
+            self._changed.notify_all()
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """One image after the frontend: the frame as read, its tracks, and the frontend image
+    (grey, resized, equalised) that keyframe descriptors are computed on."""
+
+    frame: Frame
+    tracks: FrameTracks
+    image: Image
+
+
+def _track_frames(
+    frames: Iterable[Frame],
+    frontend: KltFrontend,
+    *,
+    imu: ImuSamples | None,
+    calibration: CameraCalibration,
+    biases: BiasBoard,
+    max_frames: int | None,
+    min_step_ns: int,
+) -> Iterator[TrackedFrame]:
+    """Decoded (one thread ahead) and tracked images, in order, for the estimator.
+
+    Images closer than `min_step_ns` to the last one tracked are skipped; the first
+    `max_frames` read are taken (None: all). With `imu`, the gyro rotation since the
+    previous image seeds the tracking, less the bias `biases` gives for it.
+    """
+    previous_stamp: int | None = None
+    sequence = 0
+    decoded = prefetch(frames, name="slam-decode")
+    try:
+        for count, frame in enumerate(decoded):
+            if max_frames is not None and count >= max_frames:
+                break
+            if (
+                min_step_ns
+                and previous_stamp is not None
+                and frame.stamp_ns - previous_stamp < min_step_ns
+            ):
+                continue
+            rotation = None
+            if previous_stamp is not None and imu is not None:
+                bias = biases.bias_for(sequence)
+                if bias is not None:
+                    rotation = _gyro_rotation(
+                        imu, calibration, previous_stamp, frame.stamp_ns, bias
+                    )
+            tracks = frontend.track(
+                frame.stamp_ns, frame.image, cam_rotation_now_from_prev=rotation
+            )
+            image = frontend.last_image
+            assert image is not None  # track() just set it
+            previous_stamp = frame.stamp_ns
+            sequence += 1
+            yield TrackedFrame(frame, tracks, image)
+    finally:
+        close = getattr(decoded, "close", None)
+        if close is not None:
+            close()
+
+
+def prefetch(items: Iterable[T], depth: int = 4, *, name: str = "slam-prefetch") -> Iterator[T]:
+    """Iterate `items` in a background thread (named `name`), up to `depth` ahead.
+
+    Image decoding (PNG or H.264) and the frontend's OpenCV calls release the GIL, so
+    on two cores they overlap the work of the consuming thread instead of adding to it.
+    An exception of the producer is raised here, at the item where it happened; closing
+    the iterator early (or an exception in the consumer) stops the producer, closes
+    `items` and waits for the thread to end.
     """
     handoff: queue.Queue[Any] = queue.Queue(maxsize=depth)
     stop = threading.Event()
@@ -509,15 +645,20 @@ def prefetch(items: Iterable[T], depth: int = 4) -> Iterator[T]:
         return False
 
     def produce() -> None:
+        iterator = iter(items)
         try:
-            for item in items:
+            for item in iterator:
                 if not put(item):
                     return
             put(done)
         except BaseException as error:  # handed to the consumer, raised there
             put(_Failure(error))
+        finally:
+            close = getattr(iterator, "close", None)
+            if close is not None:
+                close()
 
-    thread = threading.Thread(target=produce, name="slam-prefetch", daemon=True)
+    thread = threading.Thread(target=produce, name=name, daemon=True)
     thread.start()
     try:
         while True:
@@ -554,11 +695,8 @@ def _check_speed(result: SlamResult, max_speed_m_s: float, name: str) -> None:
         )
 
 
-def _describe(frontend: KltFrontend, tracks: FrameTracks) -> tuple[IntArray, Descriptors]:
-    """ORB descriptors at the tracked features of the image the frontend just took."""
-    image = frontend.last_image
-    if image is None:
-        raise RuntimeError("describe() before the frontend saw an image")
+def _describe(image: Image, tracks: FrameTracks) -> tuple[IntArray, Descriptors]:
+    """ORB descriptors at the tracked features of the frontend image `image`."""
     return orb_descriptors(image, tracks.pixels)
 
 
