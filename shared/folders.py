@@ -479,6 +479,20 @@ class MergeFolder(HandoffFolder):
     def read_targets(self) -> dict[str, Any]:
         return self.read_json(self.targets)
 
+    def read_place_pairs(self) -> list[tuple[str, int, str, int]]:
+        """The keyframe pairs natural-feature merging verified across sessions:
+        (session a, stamp a ns, session b, stamp b ns), from the mergeable pairs'
+        "consistent_stamps_ns" ([stamp in b, stamp in a]) in transforms.json; empty
+        when the merge matched no natural features."""
+        links: list[tuple[str, int, str, int]] = []
+        for pair in self.read_transforms().get("pairs", []):
+            if not (isinstance(pair, dict) and pair.get("mergeable")):
+                continue
+            a, b = pair["sessions"]
+            for stamp_b, stamp_a in pair.get("consistent_stamps_ns", []):
+                links.append((str(a), int(stamp_a), str(b), int(stamp_b)))
+        return links
+
     def read_merged_keyframes(self, session: str) -> Trajectory:
         """One session's keyframe camera poses in the world frame (T_W_C)."""
         return self._read_tum(self.merged_keyframes(session), f"merged keyframes of {session}")

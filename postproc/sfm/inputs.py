@@ -198,6 +198,26 @@ def read_merge_transforms(folder: Path) -> dict[str, dict[str, Any]]:
     return result
 
 
+def read_place_links(
+    input_dirs: list[Path], sessions: list[SessionInput]
+) -> list[tuple[str, int, str, int]]:
+    """The merge folder's verified cross-session keyframe pairs, in `sessions`' names.
+
+    (session a, stamp a ns, session b, stamp b ns) per place natural-feature merging
+    verified (`MergeFolder.read_place_pairs`), for `pairs.place_pairs`; empty without a
+    merge folder among `input_dirs` or when it matched no natural features.
+    """
+    merges = [Path(f) for f in input_dirs if is_merge_folder(Path(f))]
+    if not merges:
+        return []
+    name_of = {s.folder.name: s.name for s in sessions}
+    return [
+        (name_of[a], stamp_a, name_of[b], stamp_b)
+        for a, stamp_a, b, stamp_b in MergeFolder(merges[0]).read_place_pairs()
+        if a in name_of and b in name_of
+    ]
+
+
 def depth_world_from_session(slam_folder: Path) -> FloatArray | None:
     """`T_W_S` from the SLAM folder's depth stage (inside it, the pipeline's layout, or
     beside it, the command line's), or None when there is none.

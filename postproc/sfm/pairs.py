@@ -15,11 +15,16 @@ default. Here each keyframe gets at most
 
 so the pair count is at most N * (sequential + spatial): linear in N. Sessions
 whose world pose is unknown get `bridging_pairs` against the placed ones, an
-evenly spread sample bounded by `max_bridging_pairs`.
+evenly spread sample bounded by `max_bridging_pairs`. The merge stage's
+cross-session place pairs (keyframes of two dives it verified as filming the same
+structure, `MergeFolder.read_place_pairs`) are matched too (`place_pairs`), so the
+final adjustment ties the dives together exactly where the merge found them to
+overlap, whatever the priors say.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,8 +37,8 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: Pair kinds, as stored in `PairSet.kind`.
-SEQUENTIAL, SPATIAL, LOOP, BRIDGING = 0, 1, 2, 3
-KIND_NAMES = ("sequential", "spatial", "loop", "bridging")
+SEQUENTIAL, SPATIAL, LOOP, BRIDGING, PLACE = 0, 1, 2, 3, 4
+KIND_NAMES = ("sequential", "spatial", "loop", "bridging", "place")
 
 
 @dataclass
@@ -167,6 +172,31 @@ def bridging_pairs(unplaced: IntArray, placed: IntArray, max_pairs: int) -> Pair
     return _pack(rows)
 
 
+def place_pairs(
+    session: IntArray,
+    stamps_ns: IntArray,
+    session_names: Sequence[str],
+    links: Sequence[tuple[str, int, str, int]],
+) -> PairSet:
+    """The merge's verified cross-session places as pairs of keyframe indices.
+
+    session: session index (N,) of each keyframe, into `session_names`; stamps_ns
+    (N,) int64. links: (session a, stamp a ns, session b, stamp b ns) per place the
+    merge verified. Links to keyframes not in the list are skipped.
+    """
+    where = {
+        (session_names[int(s)], int(t)): i
+        for i, (s, t) in enumerate(zip(np.asarray(session), np.asarray(stamps_ns), strict=True))
+    }
+    rows = []
+    for name_a, stamp_a, name_b, stamp_b in links:
+        i = where.get((name_a, int(stamp_a)))
+        j = where.get((name_b, int(stamp_b)))
+        if i is not None and j is not None:
+            rows.append((i, j, PLACE))
+    return _pack(rows)
+
+
 def merge_pair_sets(*sets: PairSet) -> PairSet:
     """Union of pair sets; a pair listed twice keeps the kind of its first set."""
     rows: list[tuple[int, int, int]] = []
@@ -181,8 +211,11 @@ def select_pairs(
     stamps_ns: IntArray,
     placed: npt.NDArray[np.bool_],
     options: PairOptions,
+    *,
+    places: PairSet | None = None,
 ) -> PairSet:
-    """All pairs to match: sequential, spatial/loop among placed keyframes, bridging.
+    """All pairs to match: sequential, spatial/loop among placed keyframes, bridging,
+    and the merge's cross-session places (`place_pairs`) when given.
 
     world_from_cam: prior poses (N, 4, 4), `T_W_C` for placed keyframes (`T_S_C` for
     the others, used only for their loop candidates). session: session index (N,).
@@ -192,6 +225,8 @@ def select_pairs(
     session = np.asarray(session, dtype=np.int64)
     placed = np.asarray(placed, dtype=bool)
     sets = [sequential_pairs(session, stamps_ns, options.sequential_neighbours)]
+    if places is not None:
+        sets.append(places)
     sets.append(spatial_pairs(poses, session, stamps_ns, options, active=placed))
     for s in np.unique(session[~placed]):
         # Loop candidates inside an unplaced session: its own frame is consistent.

@@ -2,23 +2,30 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from postproc.sfm.inputs import SessionInput, read_place_links
 from postproc.sfm.pairs import (
     BRIDGING,
     LOOP,
+    PLACE,
     SEQUENTIAL,
     SPATIAL,
     PairOptions,
     bridging_pairs,
+    place_pairs,
     select_pairs,
     sequential_pairs,
     spatial_pairs,
 )
+from shared.folders import MergeFolder
 from shared.geometry import make_pose
+from shared.trajectory import Trajectory
 
 
 def looking_along_y(positions: np.ndarray) -> np.ndarray:
@@ -151,6 +158,60 @@ def test_unplaced_sessions_get_bridging_but_no_spatial_pairs() -> None:
     assert 0 < counts["bridging"] <= 50
 
 
+def test_merge_place_pairs_are_matched_where_the_priors_see_no_overlap(tmp_path) -> None:
+    # The merge verified keyframes 3 and 15 of dive1 against 10 and 2 of dive2; the
+    # priors put the dives 50 m apart, so no spatial pair would join them.
+    transforms = {
+        "sessions": {},
+        "pairs": [
+            {
+                "sessions": ["dive1", "dive2"],
+                "mergeable": True,
+                "consistent_stamps_ns": [[10, 3], [2, 15], [99, 4]],
+            },
+            {"sessions": ["dive1", "dive3"], "mergeable": False, "consistent_stamps_ns": [[1, 1]]},
+        ],
+    }
+    merge = MergeFolder(tmp_path / "merge")
+    merge.path.mkdir()
+    merge.transforms.write_text(json.dumps(transforms))
+    links = merge.read_place_pairs()
+    assert links == [
+        ("dive1", 3, "dive2", 10),
+        ("dive1", 15, "dive2", 2),
+        ("dive1", 4, "dive2", 99),
+    ]
+    poses = np.concatenate((looking_along_y(track(20)), looking_along_y(track(20, x0=50.0))))
+    session = np.r_[np.zeros(20), np.ones(20)].astype(np.int64)
+    stamps = np.r_[np.arange(20), np.arange(20)].astype(np.int64)
+    places = place_pairs(session, stamps, ["dive1", "dive2"], links)
+    # Stamp 99 is no keyframe of dive2: skipped.
+    assert places.pairs.tolist() == [[3, 30], [15, 22]] and np.all(places.kind == PLACE)
+    placed = np.ones(40, dtype=bool)
+    without = select_pairs(poses, session, stamps, placed, PairOptions())
+    assert without.counts()["spatial"] == 0 and without.counts()["place"] == 0
+    pairs = select_pairs(poses, session, stamps, placed, PairOptions(), places=places)
+    assert pairs.counts()["place"] == 2 and len(pairs) == len(without) + 2
+    # The SfM stage's session names may differ from the merge's (folder names).
+    inputs = [
+        SessionInput(
+            name=name,
+            folder=tmp_path / folder,
+            keyframes=Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))),
+            images=[],
+            camera=None,  # type: ignore[arg-type]
+        )
+        for name, folder in (("a_dive1", "dive1"), ("b_dive2", "dive2"))
+    ]
+    assert read_place_links([tmp_path / "dive1", merge.path], inputs) == [
+        ("a_dive1", a, "b_dive2", b) for _, a, _, b in links
+    ]
+    assert read_place_links([tmp_path / "dive1"], inputs) == []
+    transforms["pairs"] = []
+    merge.transforms.write_text(json.dumps(transforms))
+    assert merge.read_place_pairs() == []
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [
@@ -184,6 +245,6 @@ def test_pairs_are_unique_ordered_and_bounded(n: int, sessions: int, seed: int) 
     pairs = select_pairs(poses, session, stamps, placed, options)
     assert np.all(pairs.pairs[:, 0] < pairs.pairs[:, 1])
     assert len({tuple(p) for p in pairs.pairs.tolist()}) == len(pairs)
-    assert set(pairs.kind.tolist()) <= {SEQUENTIAL, SPATIAL, LOOP, BRIDGING}
+    assert set(pairs.kind.tolist()) <= {SEQUENTIAL, SPATIAL, LOOP, BRIDGING, PLACE}
     bound = n * (options.sequential_neighbours + 2 * options.spatial_neighbours)
     assert len(pairs) <= bound + sessions * options.max_bridging_pairs
