@@ -170,13 +170,15 @@ class KltFrontend:
         image: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
         *,
         cam_rotation_now_from_prev: FloatArray | None = None,
+        prepared: bool = False,
     ) -> FrameTracks:
         """Track into `image` (recorded size, grey or BGR); returns the surviving features.
 
         `cam_rotation_now_from_prev` (3, 3), the rotation `R_Cnow_Cprev` predicted by
-        the gyro, seeds the optical flow.
+        the gyro, seeds the optical flow. `prepared`: `image` is already `prepare`'s
+        output (made in another thread, say).
         """
-        grey = self.prepare(image)
+        grey = cast(Image, image) if prepared else self.prepare(image)
         # (Pre-built pyramids would save the KLT's rebuilds, but OpenCV's Python binding
         # takes only images there.)
         if self._previous is not None and len(self._points):

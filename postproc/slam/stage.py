@@ -582,7 +582,8 @@ def _track_frames(
     max_frames: int | None,
     min_step_ns: int,
 ) -> Iterator[TrackedFrame]:
-    """Decoded (one thread ahead) and tracked images, in order, for the estimator.
+    """Decoded and prepared (one thread ahead), then tracked images, in order, for the
+    estimator.
 
     Images closer than `min_step_ns` to the last one tracked are skipped; the first
     `max_frames` read are taken (None: all). With `imu`, the gyro rotation since the
@@ -590,17 +591,14 @@ def _track_frames(
     """
     previous_stamp: int | None = None
     sequence = 0
-    decoded = prefetch(frames, name="slam-decode")
+    # The decoding thread also makes the frontend image (grey, resized, CLAHE): the
+    # tracking thread is the longest of the three.
+    decoded = prefetch(
+        _prepared(frames, frontend, max_frames=max_frames, min_step_ns=min_step_ns),
+        name="slam-decode",
+    )
     try:
-        for count, frame in enumerate(decoded):
-            if max_frames is not None and count >= max_frames:
-                break
-            if (
-                min_step_ns
-                and previous_stamp is not None
-                and frame.stamp_ns - previous_stamp < min_step_ns
-            ):
-                continue
+        for frame, grey in decoded:
             rotation = None
             if previous_stamp is not None and imu is not None:
                 bias = biases.bias_for(sequence)
@@ -609,17 +607,34 @@ def _track_frames(
                         imu, calibration, previous_stamp, frame.stamp_ns, bias
                     )
             tracks = frontend.track(
-                frame.stamp_ns, frame.image, cam_rotation_now_from_prev=rotation
+                frame.stamp_ns, grey, cam_rotation_now_from_prev=rotation, prepared=True
             )
-            image = frontend.last_image
-            assert image is not None  # track() just set it
             previous_stamp = frame.stamp_ns
             sequence += 1
-            yield TrackedFrame(frame, tracks, image)
+            yield TrackedFrame(frame, tracks, grey)
     finally:
         close = getattr(decoded, "close", None)
         if close is not None:
             close()
+
+
+def _prepared(
+    frames: Iterable[Frame], frontend: KltFrontend, *, max_frames: int | None, min_step_ns: int
+) -> Iterator[tuple[Frame, Image]]:
+    """The frames to track (the first `max_frames`, none closer than `min_step_ns` to the
+    last one taken) with their frontend images."""
+    previous_stamp: int | None = None
+    for count, frame in enumerate(frames):
+        if max_frames is not None and count >= max_frames:
+            break
+        if (
+            min_step_ns
+            and previous_stamp is not None
+            and frame.stamp_ns - previous_stamp < min_step_ns
+        ):
+            continue
+        previous_stamp = frame.stamp_ns
+        yield frame, frontend.prepare(frame.image)
 
 
 def prefetch(items: Iterable[T], depth: int = 4, *, name: str = "slam-prefetch") -> Iterator[T]:
