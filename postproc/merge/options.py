@@ -126,8 +126,8 @@ class MergeOptions:
         both filmed and estimate the transforms jointly (`joint.solve_joint`); targets
         become optional. "auto": only when the targets cannot place every session
         (none given, or a session shares no target with the others): on the simulated
-        wreck, targets and features together are less accurate than targets alone
-        (0.138 against 0.086 deg, README). True: always. False: targets only, placed
+        wreck's 240 s dives, targets and features together are still less accurate
+        than targets alone (docs/benchmarks.md, "Merge"). True: always. False: targets only, placed
         session by session (`align.place_sessions`).
     places: natural-feature settings (`places.PlaceOptions`).
     depth_sigma_m: (joint) each depth-fused session's absolute-depth error (m, 1 sigma):

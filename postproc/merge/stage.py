@@ -28,8 +28,9 @@ triangulated keyframe features, the gravity check, pairwise consistency, a
 drift-aware mean), and the session transforms come from every constraint at
 once (`joint.solve_joint`: target poses per session, natural-feature pairs,
 the gravity prior on roll/pitch, the depth prior on z for depth-fused
-sessions, each edge's covariance carrying its session's drift), robustly,
-with a residual per constraint. Targets are then optional.
+sessions, each edge's covariance carrying its session's drift, and the edges of
+one session correlated through the drift they share), robustly, with a residual
+per constraint. Targets are then optional.
 `method="paper"` runs the paper's recipe instead (`paper.py`): per-tag poses,
 one-sigma rejection, Euler averaging, sessions placed only through targets
 shared with the reference.
