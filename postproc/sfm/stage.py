@@ -49,9 +49,9 @@ from postproc.sfm.features import (
     match_statistics,
     write_pairs_file,
 )
-from postproc.sfm.inputs import SessionInput, read_inputs
+from postproc.sfm.inputs import SessionInput, read_inputs, read_place_links
 from postproc.sfm.options import SfmOptions as SfmOptions
-from postproc.sfm.pairs import select_pairs
+from postproc.sfm.pairs import place_pairs, select_pairs
 from postproc.sfm.refine import RefineResult, refine
 from shared.calibration.cameras import CameraModel
 from shared.errors import InputError, StageError
@@ -273,9 +273,12 @@ def run(
     # A SLAM folder's depth stage (inside it or beside it) is an input too.
     depths = [f.path for d in dirs for f in SlamFolder(d).depth_folders() if f.path.is_dir()]
     stamp = result_stamp("sfm", options, inputs=dirs, depth=depths)
+    # The places natural-feature merging verified across sessions are matched too, so
+    # the adjustment ties the dives together where they overlap.
+    links = read_place_links(dirs, sessions)
     with rebuild(folder, stamp, overwrite=overwrite, resumable=True) as work:
         if work is not None:
-            _build(options, sessions, keyframes, cameras, work, map_fn, timings, start_all)
+            _build(options, sessions, keyframes, cameras, work, map_fn, timings, start_all, links)
     return folder.model
 
 
@@ -288,8 +291,12 @@ def _build(
     map_fn: MapFn | None,
     timings: dict[str, float],
     start_all: float,
+    links: list[tuple[str, int, str, int]],
 ) -> None:
-    """The SfM run itself in `out` (resumes what an interrupted run left there)."""
+    """The SfM run itself in `out` (resumes what an interrupted run left there).
+
+    links: the merge's verified cross-session places (`inputs.read_place_links`).
+    """
     image_dir = out.images
     database_path = out.database
     _link_images(keyframes, image_dir, copy=options.copy_images)
@@ -324,6 +331,11 @@ def _build(
         keyframes.stamps_ns,
         keyframes.placed,
         options.pairs,
+        places=place_pairs(
+            keyframes.session, keyframes.stamps_ns, [s.name for s in sessions], links
+        )
+        if links
+        else None,
     )
     names = keyframes.names
     name_pairs = [(names[i], names[j]) for i, j in pair_set.pairs.tolist()]

@@ -19,12 +19,14 @@ from postproc.sfm.features import FeatureOptions
 from postproc.sfm.inputs import read_inputs
 from postproc.sfm.stage import SfmOptions, prior_sigmas_m, run
 from shared.errors import InputError, OutputExistsError, StageError
+from shared.folders import MergeFolder, SfmFolder
 from shared.formats.tum import read_tum
 from shared.trajectory import Trajectory, ate
 from sim.slam_like import SlamLikeSession, write_merge_like
 
 REPO = Path(__file__).resolve().parents[3]
 FAST = ["--max-features", "512", "--threads", "2"]
+PLACES = (0, 5, 10)  # keyframe indices linked across the two sessions in `merged_run`
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
@@ -46,6 +48,20 @@ def merged_run(
     """The CLI run on a merge folder placing both sessions (the usual case)."""
     root = tmp_path_factory.mktemp("sfm_merged")
     merge = write_merge_like(root / "merge", slam_survey, placed=[True, True])
+    # Three places natural-feature merging "verified" across the sessions (the merge's
+    # own spelling: [stamp in b, stamp in a]); SfM must match them as place pairs.
+    folder = MergeFolder(merge)
+    transforms = folder.read_transforms()
+    a, b = (s.folder.name for s in slam_survey)
+    stamps_a, stamps_b = (s.estimate.stamps_ns for s in slam_survey)
+    transforms["pairs"] = [
+        {
+            "sessions": [a, b],
+            "mergeable": True,
+            "consistent_stamps_ns": [[int(stamps_b[k]), int(stamps_a[k])] for k in PLACES],
+        }
+    ]
+    folder.write_transforms(transforms, overwrite=True)
     out = root / "sfm"
     result = run_cli(str(merge), "--out", str(out), *FAST)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -73,6 +89,19 @@ def test_cli_writes_model_trajectories_and_stats(
         refined = read_tum(merged_run / "sessions" / session.folder.name / "keyframes.tum")
         np.testing.assert_array_equal(refined.stamps_ns, session.estimate.stamps_ns)
         assert transforms[session.folder.name]["placed"] is True
+
+
+def test_the_merges_cross_session_places_are_matched(
+    merged_run: Path, slam_survey: list[SlamLikeSession]
+) -> None:
+    stats = json.loads((merged_run / "stats.json").read_text())
+    assert stats["pairs"]["place"] == len(PLACES)
+    listed = {tuple(line.split()) for line in SfmFolder(merged_run).pairs.read_text().splitlines()}
+    a, b = (s.folder.name for s in slam_survey)
+    stamps_a, stamps_b = (s.estimate.stamps_ns for s in slam_survey)
+    for k in PLACES:
+        pair = (f"{a}/{stamps_a[k]}.png", f"{b}/{stamps_b[k]}.png")
+        assert pair in listed or pair[::-1] in listed
 
 
 def test_refinement_brings_poses_closer_to_the_truth(
