@@ -98,7 +98,7 @@ from postproc.merge.options import MergeOptions as MergeOptions
 from postproc.merge.places import PairEvidence
 from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import InputError, StageError
-from shared.folders import DepthFolder, MergeFolder, SlamFolder, rebuild, result_stamp
+from shared.folders import MergeFolder, SlamFolder, rebuild, result_stamp
 from shared.fsutil import write_text_atomic
 from shared.trajectory import Trajectory
 
@@ -272,10 +272,8 @@ def _build(
         placement = placements.get(session.name)
         if placement is None:
             continue
-        from shared.formats.tum import write_tum
-
         merged = session.keyframes.transformed(placement.world_from_session)
-        write_tum(out.merged_keyframes(session.name), merged)
+        out.write_merged_keyframes(session.name, merged)
     world_targets = _world_targets(estimates, placements)
     targets_doc = _targets_document(
         target_names, targets, sessions, averages, observations, world_targets
@@ -393,8 +391,6 @@ def session_names(folders: Sequence[Path]) -> list[str]:
 
 
 def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Session]:
-    from shared.calibration.kalibr import read_camchain
-
     names = session_names(folders)
     sessions = []
     for name, folder in zip(names, folders, strict=True):
@@ -407,7 +403,7 @@ def _load_sessions(options: MergeOptions, folders: Sequence[Path]) -> list[Sessi
             if not path.is_file():
                 raise InputError(f"{folder}: no {path.relative_to(folder)} ({what} expected)")
         keyframes = slam.read_keyframes()
-        cameras = {c.name: c for c in read_camchain(camchain_path)}
+        cameras = {c.name: c for c in slam.read_camchain()}
         if options.camera not in cameras:
             raise InputError(
                 f"{camchain_path}: no camera {options.camera!r} (found: {', '.join(cameras)})"
@@ -462,38 +458,32 @@ def _anchor_ns(folder: Path, keyframes: Trajectory) -> int:
     return first
 
 
-def find_depth_world(folder: Path) -> Path | None:
-    """The depth stage's world trajectory for the SLAM folder `folder`, if any."""
-    for depth in _depth_folders(folder):
-        for path in (depth.trajectory_world_fused, depth.trajectory_world):
-            if path.is_file():
-                return path
+def find_depth_world(folder: Path) -> tuple[Path, Trajectory] | None:
+    """The depth stage's world trajectory for the SLAM folder `folder`, if any: the
+    depth-fused one, else the one at true depth (with the file it came from)."""
+    for depth in SlamFolder(folder).depth_folders():
+        if depth.trajectory_world_fused.is_file():
+            return depth.trajectory_world_fused, depth.read_world_fused()
+        if depth.trajectory_world.is_file():
+            return depth.trajectory_world, depth.read_world()
     return None
 
 
-def _depth_folders(folder: Path) -> tuple[DepthFolder, DepthFolder]:
-    """Where a SLAM folder's depth stage is: inside it (the pipeline) or beside it (the
-    command line's `<dive>/slam` and `<dive>/depth`)."""
-    return SlamFolder(folder).depth, DepthFolder(folder.parent / "depth")
-
-
 def _apply_depth(options: MergeOptions, session: Session) -> None:
-    from shared.formats.tum import read_tum
-
     if options.depth_fused is False:
         return
-    world_path = find_depth_world(session.folder)
+    found = find_depth_world(session.folder)
     body_path = SlamFolder(session.folder).trajectory
-    if world_path is None or not body_path.is_file():
+    if found is None or not body_path.is_file():
         if options.depth_fused:
-            depth = _depth_folders(session.folder)[0]
+            depth = SlamFolder(session.folder).depth
             raise InputError(
                 f"{session.folder}: depth fusion requested but no depth world trajectory "
                 f"({depth.trajectory_world_fused.name} or {depth.trajectory_world.name} in "
                 f"depth/ or ../depth/) and {body_path.name}"
             )
         return
-    world = read_tum(world_path)
+    world_path, world = found
     body = SlamFolder(session.folder).read_trajectory()
     stamps = session.keyframes.stamps_ns
     start = max(int(world.stamps_ns[0]), int(body.stamps_ns[0]))
