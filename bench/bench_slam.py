@@ -6,6 +6,11 @@ Usage:
                                          [--render-width 960 --render-height 540 --fps 30]
     .venv/bin/python bench/bench_slam.py --long [--long-minutes 45] [--window 300]
     .venv/bin/python bench/bench_slam.py --real [--only handheld_a karma ...] [--width PX]
+    .venv/bin/python bench/bench_slam.py --speed [--duration 40] [--seed 1]
+
+`--speed`: the stage at its defaults on one rendered 960x540, 30 fps session; prints
+the real-time factor per wall second and per CPU second (load average beside it) and
+the ATE.
 
 `--long`: a 45-minute feature-level dive (the diver sweeps the 40 m wreck side
 back and forth, so features never run out); prints the process RSS and the
@@ -286,6 +291,46 @@ def rendered(
                 f"RTF per CPU second {stats.get('real_time_factor_cpu', float('nan')):.2f} "
                 f"(load average {stats.get('load_average_1min')})"
             )
+
+
+def speed(work: Path, *, duration_s: float, seed: int) -> None:
+    """Real-time factor of the stage at its defaults on one rendered 960x540, 30 fps
+    session (the size and rate of issue #23): video seconds per wall second and per CPU
+    second of the process (every thread), with the load average beside them, and the ATE."""
+    survey = work / f"survey_1x{duration_s:.0f}s_seed{seed}_960x540@30"
+    if not survey.is_dir():
+        print(f"-- rendering the survey into {survey} (once)")
+        render_survey(
+            SurveyOptions(
+                sessions=1,
+                duration_s=duration_s,
+                seed=seed,
+                video=False,
+                workers=2,
+                width=960,
+                height=540,
+                fps=30.0,
+            ),
+            survey,
+        )
+    euroc = survey / "session_00" / "euroc"
+    data = read_euroc(euroc)
+    assert data.groundtruth is not None and data.camera is not None
+    out = work / f"slam_{survey.name}_speed"
+    run_slam(SlamOptions(), euroc, out, overwrite=True)
+    stats = SlamFolder(out).read_stats()
+    estimate = SlamFolder(out).read_trajectory()
+    shift_ns = ns_from_seconds(data.camera.timeshift_cam_imu_s)
+    estimate = Trajectory(estimate.stamps_ns + shift_ns, estimate.poses)
+    result = ate(estimate, data.groundtruth, align="se3", max_dt_ns=3_000_000)
+    print(
+        f"-- speed: 960x540 @ 30 fps, {stats['sequence_duration_s']:.1f} s of video, "
+        f"frontend {stats['frontend_width_px']} px, {os.cpu_count()} CPUs\n"
+        f"   wall {stats['run_time_s']:.1f} s (RTF {stats['real_time_factor']:.2f}), "
+        f"CPU {stats['cpu_time_s']:.1f} s (RTF per CPU second "
+        f"{stats['real_time_factor_cpu']:.2f}), load average {stats['load_average_1min']:.1f}, "
+        f"ATE {result.rmse_m * 1000:.1f} mm, keyframes {stats['keyframes']}"
+    )
 
 
 # ------------------------------------------------------------------ real recordings
@@ -603,6 +648,11 @@ def main() -> None:
     parser.add_argument("--long", action="store_true", help="only the long-dive memory run")
     parser.add_argument("--real", action="store_true", help="only the real recordings")
     parser.add_argument(
+        "--speed",
+        action="store_true",
+        help="only the real-time factor on one rendered 960x540, 30 fps session (--duration)",
+    )
+    parser.add_argument(
         "--only", nargs="*", help="with --real: these recordings (handheld_a, karma, ...)"
     )
     parser.add_argument("--long-minutes", type=float, default=45.0)
@@ -611,6 +661,10 @@ def main() -> None:
     os.environ.setdefault("WRECKMAP_PROGRESS", "0")
     if args.long:
         long_dive(args.long_minutes, args.window)
+        return
+    if args.speed:
+        args.work.mkdir(parents=True, exist_ok=True)
+        speed(args.work, duration_s=args.duration, seed=args.seed)
         return
     if args.real:
         width = args.width if "--width" in sys.argv else None
