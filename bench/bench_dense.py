@@ -4,6 +4,7 @@
         [--keyframe-step 0.25] [--max-image-size 960] [--backend auto] [--keep DIR]
         [--no-view-selection] [--min-baseline-rel 0.3] [--min-rotation-deg 20]
         [--project-keyframes 5000] [--max-neighbours 4] [--far-neighbours 2]
+        [--single-image-neighbours 0 --single-image-radius 0.05]
 
 Simulates session 0 of the survey (`sim.survey`: diver route along the starboard
 hull, underwater image model with noise), picks keyframes every `--keyframe-step` metres
@@ -135,6 +136,13 @@ def main() -> None:
     parser.add_argument("--max-depth-error", type=float,
                         default=FusionOptions().max_depth_error_rel,
                         help="fusion: depth agreement (fraction of the depth)")  # fmt: skip
+    parser.add_argument("--single-image-neighbours", type=int,
+                        default=DenseOptions().mesh_single_image_neighbours,
+                        help="mesh: keep a point of one depth map with this many fused "
+                             "points near it (0: leave them out)")  # fmt: skip
+    parser.add_argument("--single-image-radius", type=float,
+                        default=DenseOptions().mesh_single_image_radius_m,
+                        help="mesh: radius of that neighbour count, metres")  # fmt: skip
     args = parser.parse_args()
 
     sim = SurveySimulator(
@@ -178,8 +186,10 @@ def main() -> None:
     start = time.perf_counter()
     load_before = os.getloadavg()[0]
     options = DenseOptions(
-        max_image_size_px=args.max_image_size, backend=args.backend, make_mesh=not args.no_mesh
-    )
+        max_image_size_px=args.max_image_size, backend=args.backend, make_mesh=not args.no_mesh,
+        mesh_single_image_neighbours=args.single_image_neighbours,
+        mesh_single_image_radius_m=args.single_image_radius,
+    )  # fmt: skip
     options.fusion = FusionOptions(
         min_num_pixels=args.min_num_pixels, max_depth_error_rel=args.max_depth_error
     )

@@ -203,6 +203,10 @@ class DenseOptions:
         mesh (`fused_supported.ply`: with fusion's min_num_pixels 1, single-image depths
         complete the cloud, but scattered ones make Poisson grow surface nothing
         supports).
+    mesh_single_image_neighbours / mesh_single_image_radius_m: a density rule that keeps
+        some of the points seen in fewer than `mesh_min_images` images in the mesh: one
+        with at least this many fused points (any support) within the radius (m) is part
+        of a surface patch, not a stray (0: leave every such point out).
     """
 
     max_image_size_px: int = 960
@@ -218,3 +222,5 @@ class DenseOptions:
     colour: ColourOptions = field(default_factory=ColourOptions)
     make_mesh: bool = True
     mesh_min_images: int = 2
+    mesh_single_image_neighbours: int = 0
+    mesh_single_image_radius_m: float = 0.05

@@ -496,6 +496,8 @@ def _build(
             mesh_input = supported_points(
                 mesh_input, out.fused_visibility, out.fused_supported,
                 min_images=options.mesh_min_images,
+                min_neighbours=options.mesh_single_image_neighbours,
+                radius_m=options.mesh_single_image_radius_m,
             )  # fmt: skip
         if not mesh_ply.exists():
             report["mesh"] = asdict(mesh(options.meshing, mesh_input, mesh_ply))
@@ -523,9 +525,21 @@ def reference_views(
     )
 
 
-def supported_points(fused_ply: Path, visibility: Path, out_ply: Path, *, min_images: int) -> Path:
+def supported_points(
+    fused_ply: Path,
+    visibility: Path,
+    out_ply: Path,
+    *,
+    min_images: int,
+    min_neighbours: int = 0,
+    radius_m: float = 0.05,
+) -> Path:
     """Write the points of `fused_ply` fused from at least `min_images` images (COLMAP's
-    `.vis` beside the fused cloud, same point order) to `out_ply` (atomic, overwritten)."""
+    `.vis` beside the fused cloud, same point order) to `out_ply` (atomic, overwritten).
+
+    With `min_neighbours` > 0 a point seen in fewer images is kept too when at least
+    `min_neighbours` other fused points lie within `radius_m` (m) of it: a patch of one
+    depth map is surface, a stray depth is alone."""
     from postproc.dense.colmap_io import read_fusion_visibility
     from shared.formats.ply import PlyData, read_ply, write_ply
 
@@ -535,6 +549,15 @@ def supported_points(fused_ply: Path, visibility: Path, out_ply: Path, *, min_im
         raise InputError(
             f"{visibility}: {len(keep)} points, but {fused_ply} has {len(cloud.vertices)}"
         )
+    if min_neighbours > 0 and not keep.all():
+        from scipy.spatial import cKDTree
+
+        weak = np.flatnonzero(~keep)
+        # return_length counts the point itself.
+        counts = cKDTree(cloud.vertices).query_ball_point(
+            cloud.vertices[weak], radius_m, return_length=True
+        )
+        keep[weak[np.asarray(counts) - 1 >= min_neighbours]] = True
     if not keep.any():
         raise StageError(f"{fused_ply}: no point was fused from {min_images} or more images")
     kept = PlyData(

@@ -324,3 +324,35 @@ def test_mesh_input_keeps_points_seen_twice(tmp_path: Path) -> None:
     vis.write_bytes(np.uint64(1).tobytes() + np.array([1, 0], "<u4").tobytes())
     with pytest.raises(InputError, match=r"1 points, but .* has 4"):
         supported_points(tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2)
+
+
+def test_mesh_input_keeps_dense_patches_of_one_depth_map(tmp_path: Path) -> None:
+    from postproc.dense.stage import supported_points
+    from shared.formats.ply import PlyData, write_ply
+
+    # A 1 cm grid of points seen by one image, two strays seen by one image, and one
+    # point seen by two images.
+    u, v = np.meshgrid(np.arange(10) * 0.01, np.arange(10) * 0.01)
+    patch = np.column_stack((u.ravel(), v.ravel(), np.full(u.size, 2.0)))
+    strays = np.array([[1.0, 1.0, 2.0], [-1.0, 0.5, 3.0]])
+    twice = np.array([[5.0, 5.0, 5.0]])
+    points = np.concatenate((patch, strays, twice))
+    write_ply(tmp_path / "fused.ply", PlyData(vertices=points))
+    seen_by = [[0]] * (len(patch) + len(strays)) + [[0, 1]]
+    values = [v for images in seen_by for v in (len(images), *images)]
+    vis = tmp_path / "fused.ply.vis"
+    vis.write_bytes(np.uint64(len(points)).tobytes() + np.array(values, "<u4").tobytes())
+
+    def kept(**kwargs: Any) -> npt.NDArray[np.float64]:
+        out = supported_points(
+            tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2, **kwargs
+        )
+        return read_ply(out).vertices
+
+    np.testing.assert_allclose(kept(), twice)  # the rule off: only the point seen twice
+    # Every grid point has at least 3 others within 1.5 cm (corners: 3), the strays none.
+    np.testing.assert_allclose(
+        kept(min_neighbours=3, radius_m=0.015), np.concatenate((patch, twice))
+    )
+    # Asking for more neighbours than the corners have drops them.
+    assert len(kept(min_neighbours=4, radius_m=0.015)) == len(patch) - 4 + 1
