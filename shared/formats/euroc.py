@@ -599,7 +599,9 @@ def _read_imu_rows_as_recorded(path: Path) -> tuple[IntArray, FloatArray]:
     return np.array(imu_stamps, dtype=np.int64), np.array(rows, dtype=np.float64).reshape(-1, 6)
 
 
-def read_euroc(folder: Path | str, *, as_recorded: bool = False) -> EurocDataset:
+def read_euroc(
+    folder: Path | str, *, as_recorded: bool = False, groundtruth: bool = True
+) -> EurocDataset:
     """Read an EuRoC folder: the one holding `mav0/`, or `mav0` itself.
 
     cam0/data.csv and imu0/data.csv are required; sensor.yaml files and the
@@ -610,6 +612,9 @@ def read_euroc(folder: Path | str, *, as_recorded: bool = False) -> EurocDataset
     (empty stamps and arrays), and imu0 rows are taken in file order as they are:
     stamps that repeat or go back are kept for `shared.imu.clean_imu_rows`, and a
     row that is not a stamp and 6 numbers is skipped with a warning.
+
+    groundtruth: False leaves the ground truth unread (None), for readers that never
+    use it (a long recording's truth CSV takes seconds to parse).
     """
     folder = Path(folder)
     mav = folder / "mav0" if (folder / "mav0").is_dir() else folder
@@ -647,7 +652,7 @@ def read_euroc(folder: Path | str, *, as_recorded: bool = False) -> EurocDataset
         imu_noise=imu_noise,
     )
     groundtruth_csv = mav / "state_groundtruth_estimate0" / "data.csv"
-    if groundtruth_csv.is_file():
+    if groundtruth and groundtruth_csv.is_file():
         stamps, values = _read_numeric_csv(
             groundtruth_csv,
             16,

@@ -186,7 +186,7 @@ class EurocRecording:
 
         self.path = path
         self.camera_topic = request.camera_topic or DEFAULT_CAMERA_TOPIC
-        self._data = read_euroc(path, as_recorded=True)
+        self._data = read_euroc(path, as_recorded=True, groundtruth=False)
         self._mav = path / "mav0" if (path / "mav0").is_dir() else path
         if request.need_camera and not (self._mav / "cam0" / "data.csv").is_file():
             raise InputError(f"{path}: no images (expected mav0/cam0/data.csv)")

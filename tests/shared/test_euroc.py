@@ -181,6 +181,19 @@ def test_defaults_without_noise_velocities_or_biases(tmp_path: Path) -> None:
     np.testing.assert_array_equal(dataset.groundtruth_gyro_bias, 0.0)
 
 
+def test_ground_truth_left_unread_when_not_wanted(tmp_path: Path) -> None:
+    with EurocWriter(tmp_path / "d", camera=_calibration()) as writer:
+        writer.add_imu(np.array([10, 20, 30]), np.zeros((3, 3)), np.ones((3, 3)))
+        writer.set_groundtruth(_trajectory(5))
+    truth = tmp_path / "d" / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    truth.write_text("not, a, truth file\n")  # would be refused if it were read
+    dataset = read_euroc(tmp_path / "d", groundtruth=False)
+    assert dataset.groundtruth is None and dataset.groundtruth_velocities_m_s is None
+    assert dataset.imu_stamps_ns.tolist() == [10, 20, 30]
+    with pytest.raises(InputError, match=r"data\.csv"):
+        read_euroc(tmp_path / "d")
+
+
 def test_reads_euroc_as_shipped(tmp_path: Path) -> None:
     mav = tmp_path / "MH_01_easy" / "mav0"
     (mav / "cam0" / "data").mkdir(parents=True)
