@@ -120,20 +120,18 @@ class RefineOptions:
         numerous; COLMAP's default).
     ba_gradient_tolerance, ba_function_tolerance, ba_max_iterations: Ceres stopping rules
         of each adjustment (COLMAP's global-BA defaults).
-    ba_max_track_length: observations of one point that go into each adjustment of the
-        last pass (the rebuild pass, or the only one), at most (None: all). Longer tracks
-        keep this many, spread evenly over their keyframes (first and last included, so
-        a point seen on several passes still ties them), for the adjustment only: the
-        track completion after it adds the others back where they reproject well, so
-        the model keeps every point with its full track. On a dive that keeps revisiting
-        the wreck tracks grow with its length (16 observations per point at 3 minutes,
-        29 at 10: bench_pipeline.py) and so does the cost of each adjustment per
-        keyframe, about with the square of the track length (the Schur complement pairs
-        every two keyframes of a track). On the first 3 minutes of bench_sfm.py's
-        revisiting dive a cap of 8 in every round halved the refinement's CPU time (56
-        against 121 s) at a better sim3 ATE (0.75 against 1.03 cm); in the first pass it
-        destabilised the 10-minute dive (see postproc.sfm.refine), so that pass adjusts
-        every observation.
+    ba_max_track_length: observations of one point that go into each adjustment, at most
+        (None: all). Longer tracks keep this many, spread evenly over their keyframes
+        (first and last included, so a point seen on several passes still ties them),
+        for the adjustment only: the track completion after it adds the others back
+        where they reproject well, so the model keeps every point with its full track.
+        On a dive that keeps revisiting the wreck tracks grow with its length (16
+        observations per point at 3 minutes, 29 at 10: bench_pipeline.py) and so does
+        the cost of each adjustment per keyframe, about with the square of the track
+        length (the Schur complement pairs every two keyframes of a track). On the
+        first 3 minutes of bench_sfm.py's revisiting dive a cap of 8 halved the
+        refinement's CPU time (56 against 121 s) at a better sim3 ATE (0.75 against
+        1.03 cm).
     ba_max_direct_sparse_images: up to this many keyframes the adjustment factorises the
         reduced camera system directly (Ceres sparse Schur); beyond, it iterates (Schur +
         conjugate gradients). COLMAP switches at 1000 images, a limit set for unordered

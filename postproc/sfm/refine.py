@@ -23,11 +23,11 @@ it worse still (the priors' weight is not the cause). So the rebuild pass
 throws those tracks away and rebuilds them at the refined poses with COLMAP's
 default thresholds, then adjusts again, with the same priors, until converged.
 
-Each adjustment of the last pass (the rebuild pass, or the only one) sees at most
-`RefineOptions.ba_max_track_length` observations of a point (`cap_tracks`, evenly
-spread over the track's keyframes); the track completion right after it adds the rest
-back. On a dive that keeps revisiting the wreck the tracks lengthen with the dive and an
-adjustment's cost per keyframe grows with them; the cap bounds that growth.
+Each adjustment sees at most `RefineOptions.ba_max_track_length` observations of a
+point (`cap_tracks`, evenly spread over the track's keyframes); the track completion
+right after it adds the rest back. On a dive that keeps revisiting the wreck the tracks
+lengthen with the dive and an adjustment's cost per keyframe grows with them; capped, it
+bounds that growth.
 
 Sessions without a world pose (no shared target in the merge) are tied in
 where natural features allow: their keyframes are registered one by one by
@@ -262,11 +262,7 @@ class _Mapper:
             points = max(self.reconstruction.num_points3D(), 1)
             observations = self.reconstruction.compute_num_observations()
             dropped = 0
-            # Not in the first of two passes: its wide-threshold tracks hold wrong
-            # observations and its poses are still far off; capped there, the 10-minute
-            # dive of bench_sfm.py swung by 2.5 m in round 2 and took 2 rounds more.
-            capped = self.rebuilt or not self.options.rebuild_tracks
-            if self.options.ba_max_track_length and capped:
+            if self.options.ba_max_track_length:
                 dropped = cap_tracks(
                     self.reconstruction,
                     self.mapper.observation_manager,
