@@ -26,8 +26,8 @@ default thresholds, then adjusts again, with the same priors, until converged.
 Each adjustment sees at most `RefineOptions.ba_max_track_length` observations of a
 point (`cap_tracks`, evenly spread over the track's keyframes); the track completion
 right after it adds the rest back. On a dive that keeps revisiting the wreck the tracks
-lengthen with the dive and an adjustment's cost per keyframe grows with them; capped, it
-bounds that growth.
+lengthen with the dive and an adjustment's cost per keyframe grows with them; the
+cap bounds that growth.
 
 Sessions without a world pose (no shared target in the merge) are tied in
 where natural features allow: their keyframes are registered one by one by
