@@ -67,7 +67,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from postproc.sfm.features import FeatureOptions
 from postproc.sfm.stage import SfmOptions, run
 from shared.folders import SfmFolder, SlamFolder
-from shared.formats.tum import read_tum, write_tum
 from shared.geometry import invert_pose
 from shared.trajectory import Trajectory, ate
 from sim.slam_like import (
@@ -140,7 +139,7 @@ def subset(sessions: list[SlamLikeSession], fraction: float, root: Path) -> list
         shutil.copyfile(source.stats, slam.stats)
         estimate = Trajectory(s.estimate.stamps_ns[:n], s.estimate.poses[:n])
         truth = Trajectory(s.truth_world_from_cam.stamps_ns[:n], s.truth_world_from_cam.poses[:n])
-        write_tum(slam.keyframes_tum, estimate)
+        slam.write_keyframes(estimate)
         for stamp in estimate.stamps_ns.tolist():
             slam.keyframe_image(stamp).symlink_to(source.keyframe_image(stamp).resolve())
         out.append(SlamLikeSession(folder, s.world_from_session, truth, estimate))
@@ -164,7 +163,7 @@ def worst_ate_m(out: Path, sessions: list[SlamLikeSession], align: Align) -> flo
     """The worst session's ATE of our refined keyframes (m)."""
     return max(
         ate(
-            read_tum(SfmFolder(out).session_keyframes(s.folder.name)),
+            SfmFolder(out).read_session_keyframes(s.folder.name),
             s.truth_world_from_cam,
             align=align,
         ).rmse_m
@@ -254,7 +253,7 @@ def print_ours(
     )
     for s in sessions:
         prior = s.estimate.transformed(s.world_from_session)
-        refined = read_tum(SfmFolder(out).session_keyframes(s.folder.name))
+        refined = SfmFolder(out).read_session_keyframes(s.folder.name)
         print(f"  {s.folder.name} prior   ATE {ate_row(prior, s.truth_world_from_cam)}")
         print(f"  {s.folder.name} refined ATE {ate_row(refined, s.truth_world_from_cam)}")
 
