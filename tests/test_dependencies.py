@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 INSTALLS = {"shared": (), "sim": ("field",), "field": ("field",), "postproc": ("post",)}
 
 # Imported by bench/ only when present, and deliberately not a dependency.
-OPTIONAL_TOOLS = {"atheris": "bench/fuzz_campaign.py --atheris: no wheel installs on Python 3.11"}
+OPTIONAL_TOOLS = {"atheris": "tests/fuzz/campaign.py --atheris: no wheel installs on Python 3.11"}
 
 
 def canonical(name: str) -> str:

@@ -6,7 +6,7 @@ or raises a `WreckmapError` whose message names the input file (and, for
 targets that promise it, a byte offset or a line). Anything else (another
 exception type, running past the wall-clock limit, a message that does not
 say where) is a failure. Used by the default tests and by
-bench/fuzz_campaign.py.
+tests/fuzz/campaign.py.
 """
 
 from __future__ import annotations

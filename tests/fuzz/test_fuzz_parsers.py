@@ -3,7 +3,7 @@
 Each example is one mutation (tests/fuzz/mutators.py) of a real file from ../shared/data
 or of a file our own writers made; the parser must return, or raise a WreckmapError that
 names the file and the place (byte offset, line, record, key), within the wall-clock
-limit. bench/fuzz_campaign.py runs the same targets with many more inputs.
+limit. tests/fuzz/campaign.py runs the same targets with many more inputs.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ def _fuzz(name: str, tmp_path: Path, seed: int) -> None:
         target, data, tmp_path / "case", time_limit_s=target.time_limit_s * SLOW_DOWN
     )
     if outcome.failed:
-        # Replay: bench/fuzz_campaign.py --save-failures stores such inputs as regressions.
+        # Replay: tests/fuzz/campaign.py --save-failures stores such inputs as regressions.
         pytest.fail(describe_failure(name, label, outcome, None))
 
 

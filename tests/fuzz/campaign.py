@@ -1,8 +1,11 @@
 """Longer fuzz campaign over every parser; prints the README table.
 
-    .venv/bin/python bench/fuzz_campaign.py                 # 400 inputs per parser
-    .venv/bin/python bench/fuzz_campaign.py --inputs 5000 --targets mcap gpmf
-    .venv/bin/python bench/fuzz_campaign.py --save-failures  # store new failing inputs
+    .venv/bin/python -m tests.fuzz.campaign                 # 400 inputs per parser
+    .venv/bin/python -m tests.fuzz.campaign --inputs 5000 --targets mcap gpmf
+    .venv/bin/python -m tests.fuzz.campaign --save-failures  # store new failing inputs
+
+It lives beside the fuzz targets it drives (a testing tool, not a benchmark: bench/
+imports nothing from tests/).
 
 Each input is a structure-aware mutation (tests/fuzz/mutators.py) of a real file from
 ../shared/data or of a file our own writers produced, replayed through the parser with
@@ -25,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from tests.fuzz.targets import TARGETS, mutated, run_input, save_regression
 
