@@ -479,6 +479,10 @@ class MergeFolder(HandoffFolder):
     def read_targets(self) -> dict[str, Any]:
         return self.read_json(self.targets)
 
+    def write_targets(self, targets: dict[str, Any], *, overwrite: bool = False) -> Path:
+        """targets.json: each target's world pose and the sightings behind it."""
+        return self._write_json(self.targets, targets, overwrite=overwrite)
+
     def read_place_pairs(self) -> list[tuple[str, int, str, int]]:
         """The keyframe pairs natural-feature merging verified across sessions:
         (session a, stamp a ns, session b, stamp b ns), from the mergeable pairs'

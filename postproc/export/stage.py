@@ -28,6 +28,7 @@ from postproc.export.camera_reference import ReferenceOptions
 from postproc.export.ortho import Georeference
 from postproc.export.run_folder import RunFolder, find_run
 from shared.errors import InputError
+from shared.folders import MergeFolder
 
 log = logging.getLogger(__name__)
 
@@ -121,8 +122,8 @@ def target_position_m(targets_json: Path | None, name: str) -> np.ndarray:
     """World position (3,) m of merge target `name` (its `T_W_m` translation)."""
     if targets_json is None:
         raise InputError(f"georeference: no merge/targets.json to find target {name!r} in")
+    document = MergeFolder(targets_json.parent).read_json(targets_json)
     try:
-        document = json.loads(targets_json.read_text())
         pose = np.asarray(document[name]["T_W_m"], float)
     except (KeyError, TypeError, ValueError) as error:
         raise InputError(

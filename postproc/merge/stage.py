@@ -64,7 +64,6 @@ Outputs in `out_dir`:
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -99,7 +98,6 @@ from postproc.merge.places import PairEvidence
 from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import InputError, StageError
 from shared.folders import MergeFolder, SlamFolder, rebuild, result_stamp
-from shared.fsutil import write_text_atomic
 from shared.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -278,7 +276,7 @@ def _build(
     targets_doc = _targets_document(
         target_names, targets, sessions, averages, observations, world_targets
     )
-    write_text_atomic(out.targets, json.dumps(targets_doc, indent=2) + "\n")
+    out.write_targets(targets_doc)
     if options.plot:
         from postproc.merge.plots import plot_merge
 
@@ -308,7 +306,7 @@ def _build(
                     "reference (see pairs for the evidence)"
                 )
     # transforms.json last: the folder's completeness marker.
-    write_text_atomic(out.transforms, json.dumps(document, indent=2) + "\n")
+    out.write_transforms(document)
 
 
 def _check_options(
