@@ -25,14 +25,15 @@ def test_reduced_demo(tmp_path: Path) -> None:
     env = {**os.environ, "WRECKMAP_PROGRESS": "0", "PYTHONPATH": str(REPO)}
     command = [
         sys.executable, str(REPO / "bench" / "demo.py"), "--out", str(out),
-        "--duration", "60", "--width", "640", "--height", "360", "--fps", "10",
+        "--duration", "60", "--width", "480", "--height", "270", "--fps", "10",
         "--dense-image-px", "160", "--depth-min-range-m", "0.2",
     ]  # fmt: skip
     # Its own process group, so that a timeout stops the simulator and the pipeline too.
-    # The limit is a hang guard, never a speed check: the 60 s dives take about 3 minutes
-    # on two cores with other work beside them (the 90 s ones of `make demo` 4 quiet, 9 at
-    # load 9); under `nice` at load 11 the simulation alone ran 7x slower than quiet; an
-    # hour (20x) means something is stuck.
+    # 480x270 keeps every stage's path (a 45 s dive is too short for the depth sync) at
+    # two thirds of the 640x360 cost. The limit is a hang guard, never a speed check: the
+    # 60 s dives take about 4 minutes quiet, 6 with the rest of the suite beside them (the
+    # 90 s ones of `make demo` at 960x540: 4 quiet, 9 at load 9); under `nice` at load 11
+    # the simulation alone ran 7x slower than quiet; an hour (20x) means something is stuck.
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
         start_new_session=True,
