@@ -34,6 +34,9 @@ def options() -> SfmOptions:
     features = FeatureOptions(max_num_features=512, num_threads=1)
     sfm = SfmOptions(features=features, chunk_images=16, chunk_pairs=60)
     sfm.refine.num_threads = 2
+    # The workers do the per-image work (extraction, matching): one refinement pass is
+    # enough to compare the models (the rebuild pass is tested in test_refine.py).
+    sfm.refine.rebuild_tracks = False
     return sfm
 
 
