@@ -44,7 +44,7 @@ def test_simulated_gopro_session_matches_truth(tmp_path: Path) -> None:
     _cli(
         "field.cli", "sim", "survey", "--out", str(survey), "--sessions", "1",
         "--duration", "12", "--seed", "3", "--width", "320", "--height", "180",
-        "--fps", "30", "--workers", "1",
+        "--fps", "30", "--workers", "1", "--texel-mm", "10",
     )  # fmt: skip
     truth_info = json.loads((survey / "truth.json").read_text())
     sim_cal = read_camchain(survey / "calib" / "camchain.yaml")[0]
