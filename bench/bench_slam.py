@@ -9,8 +9,8 @@ Usage:
     .venv/bin/python bench/bench_slam.py --speed [--duration 40] [--seed 1]
 
 `--speed`: the stage at its defaults on one rendered 960x540, 30 fps session; prints
-the real-time factor per wall second and per CPU second (load average beside it) and
-the ATE.
+the real-time factor per wall second and per CPU second (load average beside it), the
+ATE and the CPU seconds of each of the stage's threads (decode, frontend, estimator).
 
 `--long`: a 45-minute feature-level dive (the diver sweeps the 40 m wreck side
 back and forth, so features never run out); prints the process RSS and the
@@ -331,6 +331,12 @@ def speed(work: Path, *, duration_s: float, seed: int) -> None:
         f"{stats['real_time_factor_cpu']:.2f}), load average {stats['load_average_1min']:.1f}, "
         f"ATE {result.rmse_m * 1000:.1f} mm, keyframes {stats['keyframes']}"
     )
+    threads = stats.get("cpu_time_threads_s") or {}
+    if threads:
+        print(
+            "   CPU per thread: "
+            + ", ".join(f"{name} {seconds:.1f} s" for name, seconds in threads.items())
+        )
 
 
 # ------------------------------------------------------------------ real recordings

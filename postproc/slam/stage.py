@@ -9,7 +9,8 @@ keyframes, estimates the visual-inertial trajectory (backend) and writes:
     calib/camchain.yaml the camera model used (Kalibr), calib/imu.yaml the IMU noise
     map.ply             sparse landmarks in S (binary little-endian PLY, float32 xyz)
     stats.json          frames, keyframes, run time, real-time factor (wall clock, and
-                        per CPU second with the load average beside it), loop closures,
+                        per CPU second with the load average beside it), the CPU
+                        seconds of each thread ("cpu_time_threads_s"), loop closures,
                         tracking failures, sliding-window and estimator counters, the
                         start ("init*"), map segments, the images the IMU covers
                         ("frames_before_imu", "frames_after_imu") and the IMU rows
@@ -333,6 +334,10 @@ def _build(
         if options.use_imu
         else None
     )
+    # CPU seconds of each thread (stats.json "cpu_time_threads_s"): decoding and image
+    # preparation, tracking, and the estimator (this thread, from here to its result).
+    thread_cpu_s: dict[str, float] = {}
+    estimator_cpu_start = time.thread_time()
     biases = BiasBoard(_gyro_bias(estimator), lag=PIPELINE_LAG_FRAMES)
     imu = source.imu if isinstance(estimator, SlamEstimator) else None
     tracked = _track_frames(
@@ -343,12 +348,13 @@ def _build(
         biases=biases,
         max_frames=options.max_frames,
         min_step_ns=min_frame_step_ns(options.max_rate_hz),
+        cpu_s=thread_cpu_s,
     )
     first_stamp: int | None = None
     last_stamp = 0
     # The frontend (and, one thread further, the decoder) runs ahead of the estimator;
     # OpenCV and the decoders release the GIL, so on two cores they overlap the backend.
-    stream = prefetch(tracked, depth=PIPELINE_LAG_FRAMES, name="slam-frontend")
+    stream = prefetch(tracked, depth=PIPELINE_LAG_FRAMES, name="slam-frontend", cpu_s=thread_cpu_s)
     # These threads are the parallelism: OpenCV's own worker threads on top of them
     # took 65 s of CPU time against 48 s for the same result (one pair of runs, 40 s
     # of 960x540 video, 2 shared cores).
@@ -382,6 +388,7 @@ def _build(
         result = estimator.finish()
     except StageError as error:
         raise StageError(f"{source.name}: {error}") from error
+    thread_cpu_s["slam-estimator"] = time.thread_time() - estimator_cpu_start
     if stabilised:
         result = gravity_and_scale(
             result,
@@ -423,6 +430,9 @@ def _build(
             "cpu_time_s": cpu_time_s,
             "real_time_factor_cpu": duration_s / cpu_time_s if cpu_time_s > 0 else 0.0,
             "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+            "cpu_time_threads_s": {
+                key.removeprefix("slam-"): value for key, value in thread_cpu_s.items()
+            },
             "tracking_failures": tracking_failures,
             **(coverage.as_stats() if coverage is not None else {}),
             **source.imu_cleaning.as_stats(),
@@ -581,6 +591,7 @@ def _track_frames(
     biases: BiasBoard,
     max_frames: int | None,
     min_step_ns: int,
+    cpu_s: dict[str, float] | None = None,
 ) -> Iterator[TrackedFrame]:
     """Decoded and prepared (one thread ahead), then tracked images, in order, for the
     estimator.
@@ -596,6 +607,7 @@ def _track_frames(
     decoded = prefetch(
         _prepared(frames, frontend, max_frames=max_frames, min_step_ns=min_step_ns),
         name="slam-decode",
+        cpu_s=cpu_s,
     )
     try:
         for frame, grey in decoded:
@@ -637,14 +649,21 @@ def _prepared(
         yield frame, frontend.prepare(frame.image)
 
 
-def prefetch(items: Iterable[T], depth: int = 4, *, name: str = "slam-prefetch") -> Iterator[T]:
+def prefetch(
+    items: Iterable[T],
+    depth: int = 4,
+    *,
+    name: str = "slam-prefetch",
+    cpu_s: dict[str, float] | None = None,
+) -> Iterator[T]:
     """Iterate `items` in a background thread (named `name`), up to `depth` ahead.
 
     Image decoding (PNG or H.264) and the frontend's OpenCV calls release the GIL, so
     on two cores they overlap the work of the consuming thread instead of adding to it.
     An exception of the producer is raised here, at the item where it happened; closing
     the iterator early (or an exception in the consumer) stops the producer, closes
-    `items` and waits for the thread to end.
+    `items` and waits for the thread to end. With `cpu_s`, the thread's CPU seconds are
+    stored there under `name` when it ends.
     """
     handoff: queue.Queue[Any] = queue.Queue(maxsize=depth)
     stop = threading.Event()
@@ -672,6 +691,8 @@ def prefetch(items: Iterable[T], depth: int = 4, *, name: str = "slam-prefetch")
             close = getattr(iterator, "close", None)
             if close is not None:
                 close()
+            if cpu_s is not None:
+                cpu_s[name] = time.thread_time()
 
     thread = threading.Thread(target=produce, name=name, daemon=True)
     thread.start()

@@ -79,6 +79,11 @@ def test_cli_writes_the_slam_result_folder(wall_euroc: Path, tmp_path: Path) -> 
     assert stats["loop_closures"] == 0
     assert stats["tracking_failures"] == 0
     assert stats["real_time_factor"] > 0
+    # CPU seconds of each of the three threads, within the process's total.
+    threads = stats["cpu_time_threads_s"]
+    assert set(threads) == {"decode", "frontend", "estimator"}
+    assert all(v > 0 for v in threads.values())
+    assert sum(threads.values()) <= stats["cpu_time_s"] + 0.5
     header, _, body = (out / "map.ply").read_bytes().partition(b"end_header\n")
     assert f"element vertex {stats['landmarks']}".encode() in header
     assert len(body) == 12 * stats["landmarks"] > 0
