@@ -256,7 +256,11 @@ class KltFrontend:
         returns the surviving points in `current` and their ids."""
         o = self.options
         window = (o.klt_window_px, o.klt_window_px)
-        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        criteria = (
+            cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
+            o.klt_iterations,
+            o.klt_epsilon_px,
+        )
         start = points.reshape(-1, 1, 2)
         guess = self._predict(points, rotation).reshape(-1, 1, 2)
         forward, status, _ = cv2.calcOpticalFlowPyrLK(
@@ -333,7 +337,7 @@ class KltFrontend:
 
     def _replenish(self, grey: Image) -> None:
         o = self.options
-        if len(self._points) >= o.max_features:
+        if len(self._points) > o.max_features - max(o.replenish_missing, 1):
             return
         h, w = grey.shape
         mask = np.full((h, w), 255, dtype=np.uint8)

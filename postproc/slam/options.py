@@ -26,9 +26,19 @@ class FrontendOptions:
     min_distance_px: minimum spacing of features.
     quality_level: Shi-Tomasi quality relative to the best corner of the cell.
     klt_window_px / klt_levels: Lucas-Kanade window size and pyramid levels.
+    klt_iterations / klt_epsilon_px: Lucas-Kanade stops after this many iterations per
+        level or once a step is shorter than this (pixels).
+        The KLT was most of the tracking thread's CPU. With the gyro-seeded start,
+        window 13, 2 levels, 10 iterations and 0.03 px (against 15, 3, 30 and 0.01, and
+        replenish_missing 20 against 1) cut the tracking thread from 30.6 to 12.5 s of
+        CPU on 40 s of 960x540, 30 fps video, with an ATE within the spread of
+        seed-perturbed runs (bench_slam --speed; the demo's 10 fps dives).
     max_forward_backward_px: forward-backward consistency bound.
     ransac_threshold_px: epipolar distance bound of the essential-matrix RANSAC.
     border_px: features closer than this to the image border are dropped.
+    replenish_missing: new corners are searched for only once at least this many of
+        the `max_features` are missing (1: after every lost feature; a few tracks are
+        lost in most frames, and the search was a fifth of the tracking thread's time).
     weak_quality_factor / weak_fill_below: when a frame ends up with fewer than
         `weak_fill_below` features, the grid cells short of their share are searched
         again at `quality_level * weak_quality_factor` (1: never). Only then: in a
@@ -48,11 +58,14 @@ class FrontendOptions:
     grid_rows: int = 5
     min_distance_px: int = 12
     quality_level: float = 0.01
-    klt_window_px: int = 15
-    klt_levels: int = 3
+    klt_window_px: int = 13
+    klt_levels: int = 2
+    klt_iterations: int = 10
+    klt_epsilon_px: float = 0.03
     max_forward_backward_px: float = 1.0
     ransac_threshold_px: float = 1.0
     border_px: int = 4
+    replenish_missing: int = 20
     weak_quality_factor: float = 0.1
     weak_fill_below: int = 200
     drought_min_tracks: int = 40

@@ -187,3 +187,30 @@ def test_flat_cells_fill_from_weaker_corners() -> None:
     # Measured: 40 (the dots alone) and 400 (the budget, from the texture).
     assert counts[1.0] < 100
     assert counts[0.1] > 3 * counts[1.0]
+
+
+def test_new_corners_wait_until_enough_features_are_missing(rendered) -> None:
+    stamps, _, images, _ = rendered
+    budget = 200
+    refills_by_missing = {}
+    for missing in (1, 8):
+        frontend = KltFrontend(
+            FrontendOptions(width_px=0, max_features=budget, replenish_missing=missing),
+            default_camera().scaled(2 / 3),
+        )
+        refills = 0
+        next_id = 0
+        for stamp, image in zip(stamps, images, strict=True):
+            frame = frontend.track(int(stamp), image)
+            survivors = int(np.count_nonzero(frame.track_ids < next_id))
+            if next_id and frontend._next_id > next_id:
+                refills += 1
+                # New corners only once `missing` of the budget are gone.
+                assert survivors <= budget - missing
+            elif next_id:
+                assert survivors > budget - missing
+            next_id = frontend._next_id
+        refills_by_missing[missing] = refills
+    # Some track is lost in most frames: refilled in most with 1, far fewer with 8.
+    assert refills_by_missing[1] >= len(stamps) // 2
+    assert 1 <= refills_by_missing[8] <= refills_by_missing[1] // 2
