@@ -28,11 +28,15 @@ class FrontendOptions:
     klt_window_px / klt_levels: Lucas-Kanade window size and pyramid levels.
     klt_iterations / klt_epsilon_px: Lucas-Kanade stops after this many iterations per
         level or once a step is shorter than this (pixels).
-        The KLT was most of the tracking thread's CPU. With the gyro-seeded start,
-        window 13, 2 levels, 10 iterations and 0.03 px (against 15, 3, 30 and 0.01, and
-        replenish_missing 20 against 1) cut the tracking thread from 30.6 to 12.5 s of
-        CPU on 40 s of 960x540, 30 fps video, with an ATE within the spread of
-        seed-perturbed runs (bench_slam --speed; the demo's 10 fps dives).
+        The KLT was most of the tracking thread's CPU. 10 iterations and 0.03 px
+        (against 30 and 0.01), with replenish_missing 20 (against 1), cut the tracking
+        thread from 28.3-33.0 to 20.5-21.7 s of CPU on 40 s of 960x540, 30 fps video
+        (bench_slam --speed, two back-to-back pairs, load about 1.5 on 2 cores; ATE 9.5
+        -> 8.8 mm). On the demo's 10 fps dives the ATE (11.9 and 21.0 mm) stayed within
+        the spread of runs whose gyro seeds differed by a hair (8.0-14.5 and 17.2-32.6
+        mm: which tracks survive, and so the ATE, is that sensitive). A 13 px window
+        (with 2 or 3 levels) was cheaper still and as accurate on rendered video, but
+        the unseeded visual-only EuRoC MH_01 run and the Karma drone clip then failed.
     max_forward_backward_px: forward-backward consistency bound.
     ransac_threshold_px: epipolar distance bound of the essential-matrix RANSAC.
     border_px: features closer than this to the image border are dropped.
@@ -58,8 +62,8 @@ class FrontendOptions:
     grid_rows: int = 5
     min_distance_px: int = 12
     quality_level: float = 0.01
-    klt_window_px: int = 13
-    klt_levels: int = 2
+    klt_window_px: int = 15
+    klt_levels: int = 3
     klt_iterations: int = 10
     klt_epsilon_px: float = 0.03
     max_forward_backward_px: float = 1.0
