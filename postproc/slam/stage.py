@@ -143,6 +143,20 @@ def _gyro_bias(estimator: SlamEstimator | VisualOnlyEstimator) -> FloatArray | N
     return np.asarray(backend.bias_of(backend.num_keyframes - 1).gyroscope(), dtype=np.float64)
 
 
+@dataclass(frozen=True)
+class ProbeRotations:
+    """The image rotations of a clip's first seconds, as the gyro check compares them.
+
+    starts_ns, ends_ns (P,): each frame pair's stamps; now_from_prev (P, 3, 3): its
+    rotation `R_Cnow_Cprev` from the tracked features; focal_px: the frontend's focal.
+    """
+
+    starts_ns: IntArray
+    ends_ns: IntArray
+    now_from_prev: FloatArray
+    focal_px: float
+
+
 def probe_gyro(
     source: SlamInput,
     calibration: CameraCalibration,
@@ -150,6 +164,26 @@ def probe_gyro(
     options: GyroCheckOptions,
 ) -> GyroCheck:
     """Track the first `options.probe_s` seconds (no gyro seeding) and compare rotations."""
+    pairs = probe_rotations(source, calibration, frontend_options, options.probe_s)
+    return check_gyro_against_images(
+        starts_ns=pairs.starts_ns,
+        ends_ns=pairs.ends_ns,
+        visual_now_from_prev=pairs.now_from_prev,
+        imu=source.imu,
+        imu_from_cam_rotation=calibration.imu_from_cam[:3, :3],
+        focal_px=pairs.focal_px,
+        options=options,
+    )
+
+
+def probe_rotations(
+    source: SlamInput,
+    calibration: CameraCalibration,
+    frontend_options: FrontendOptions,
+    probe_s: float,
+) -> ProbeRotations:
+    """The frame pairs of the first `probe_s` seconds (tracked without gyro seeding)
+    whose rotation at least 20 features agree on."""
     frontend = KltFrontend(frontend_options, calibration.camera)
     rng = np.random.default_rng(0)
     threshold_rad = 2.0 / frontend.focal_px
@@ -162,7 +196,7 @@ def probe_gyro(
     try:
         for frame in frames:
             first = frame.stamp_ns if first is None else first
-            if seconds_from_ns(frame.stamp_ns - first) > options.probe_s:
+            if seconds_from_ns(frame.stamp_ns - first) > probe_s:
                 break
             tracks = frontend.track(frame.stamp_ns, frame.image)
             if previous is not None:
@@ -184,14 +218,11 @@ def probe_gyro(
         close = getattr(frames, "close", None)
         if close is not None:
             close()
-    return check_gyro_against_images(
+    return ProbeRotations(
         starts_ns=np.array(starts, dtype=np.int64),
         ends_ns=np.array(ends, dtype=np.int64),
-        visual_now_from_prev=np.array(rotations).reshape(-1, 3, 3),
-        imu=source.imu,
-        imu_from_cam_rotation=calibration.imu_from_cam[:3, :3],
-        focal_px=frontend.focal_px,
-        options=options,
+        now_from_prev=np.array(rotations).reshape(-1, 3, 3),
+        focal_px=float(frontend.focal_px),
     )
 
 

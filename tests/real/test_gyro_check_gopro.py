@@ -18,9 +18,9 @@
   rotations with R^2 0.96, the gyro only with R^2 0.49 (both with a free
   3x3 linear map, so axis conventions cannot spoil either fit).
 
-The tracking is the stage's probe (postproc.slam.stage.probe_gyro) done
-here step by step, so the per-pair rotations can be compared with the file's
-own metadata; the stage's probe itself runs once per clip as well.
+The tracking is the stage's own probe (postproc.slam.stage.probe_rotations, what
+probe_gyro checks), kept pair by pair so that the rotations can be compared with
+the file's own metadata.
 """
 
 from __future__ import annotations
@@ -38,15 +38,15 @@ import yaml
 from field.gopro import cameras
 from field.gopro.mp4 import read_mp4
 from field.gopro.telemetry import global_settings, iter_gpmf_payloads, read_telemetry
-from postproc.slam.frontend import FrontendOptions, KltFrontend
+from postproc.slam.frontend import FrontendOptions
 from postproc.slam.gyro_check import (
     GyroCheck,
     GyroCheckOptions,
     _gyro_angles,
     check_gyro_against_images,
-    visual_rotation,
 )
 from postproc.slam.inputs import open_input
+from postproc.slam.stage import probe_rotations
 from shared.errors import InputError
 from shared.geometry import so3_log
 
@@ -82,44 +82,21 @@ def _import(shared_data: Path, name: str, folder: Path) -> Path:
 
 
 def _probe(session: Path, options: GyroCheckOptions) -> Probe:
+    """The stage's own probe (`probe_rotations`, then the check), keeping the pairs."""
     source = open_input(session)
     calibration = source.calibration
     assert calibration is not None and source.calibration_is_guess
-    frontend = KltFrontend(FrontendOptions(), calibration.camera)
-    rng = np.random.default_rng(0)
-    starts: list[int] = []
-    ends: list[int] = []
-    rotations: list[np.ndarray] = []
-    previous = None
-    first: int | None = None
-    for frame in source.frames():
-        first = frame.stamp_ns if first is None else first
-        if (frame.stamp_ns - first) * 1e-9 > options.probe_s:
-            break
-        tracks = frontend.track(frame.stamp_ns, frame.image)
-        if previous is not None:
-            _, ia, ib = np.intersect1d(previous.track_ids, tracks.track_ids, return_indices=True)
-            rotation, inliers = visual_rotation(
-                previous.xy_normalised[ia],
-                tracks.xy_normalised[ib],
-                rng=rng,
-                threshold_rad=2.0 / frontend.focal_px,
-            )
-            if inliers >= 20:
-                starts.append(previous.stamp_ns)
-                ends.append(tracks.stamp_ns)
-                rotations.append(rotation)
-        previous = tracks
+    pairs = probe_rotations(source, calibration, FrontendOptions(), options.probe_s)
     check = check_gyro_against_images(
-        starts_ns=np.array(starts, dtype=np.int64),
-        ends_ns=np.array(ends, dtype=np.int64),
-        visual_now_from_prev=np.array(rotations),
+        starts_ns=pairs.starts_ns,
+        ends_ns=pairs.ends_ns,
+        visual_now_from_prev=pairs.now_from_prev,
         imu=source.imu,
         imu_from_cam_rotation=calibration.imu_from_cam[:3, :3],
-        focal_px=frontend.focal_px,
+        focal_px=pairs.focal_px,
         options=options,
     )
-    return Probe(session, np.array(starts), np.array(ends), np.array(rotations), check)
+    return Probe(session, pairs.starts_ns, pairs.ends_ns, pairs.now_from_prev, check)
 
 
 @pytest.fixture(scope="module")
@@ -213,21 +190,6 @@ def _linear_r2(predictor: np.ndarray, target: np.ndarray) -> float:
     coefficients, *_ = np.linalg.lstsq(design, target, rcond=None)
     residual = target - design @ coefficients
     return float(1.0 - np.sum(residual**2) / np.sum((target - target.mean(axis=0)) ** 2))
-
-
-@pytest.mark.parametrize("clip, verdict", [("karma", "rigid"), ("max_heromode", "not rigid")])
-def test_the_stage_probe_gives_the_same_verdict(
-    clip: str, verdict: str, request: pytest.FixtureRequest
-) -> None:
-    """What `wreckmap-post slam` runs before the main pass decides the same way."""
-    from postproc.slam.stage import probe_gyro
-
-    probe: Probe = request.getfixturevalue(clip)
-    source = open_input(probe.session)
-    assert source.calibration is not None
-    check = probe_gyro(source, source.calibration, FrontendOptions(), GyroCheckOptions())
-    assert check.verdict == verdict, check.reason
-    assert check.turning_pairs == probe.check.turning_pairs
 
 
 def _imu_orientation_keys(
