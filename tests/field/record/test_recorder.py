@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 import field.record.recorder as recorder_module
+from field.record.hostclock import host_now_ns
 from field.record.recorder import Recorder, RecorderOptions, SampleQueue
 from field.record.recover import recover
 from field.record.sources.base import SourceSample, StreamInfo
@@ -67,17 +68,17 @@ class FakeSource:
     def _gone(self) -> bool:
         if self.lost is None or self.t0 is None:
             return False
-        t = (time.time_ns() - self.t0) * 1e-9
+        t = (host_now_ns() - self.t0) * 1e-9
         return self.lost[0] <= t < self.lost[1]
 
     def open(self) -> None:
         if self.absent:
             raise DeviceError(f"{self.name}: no device (found: none)")
         if self.t0 is None:
-            self.t0 = time.time_ns()
+            self.t0 = host_now_ns()
         if self._gone():
             raise DeviceError(f"{self.name}: not found")
-        elapsed = time.time_ns() - self.t0
+        elapsed = host_now_ns() - self.t0
         self.next_imu = max(self.next_imu, int(elapsed * self.imu_hz / 1e9))
         if self.fps:
             self.next_frame = max(self.next_frame, -(-int(elapsed * self.fps / 1e9) // 5) * 5)
@@ -99,7 +100,7 @@ class FakeSource:
     def read(self, timeout_s: float) -> list[SourceSample]:
         if self._gone():
             raise DeviceError(f"{self.name}: unplugged")
-        now = time.time_ns()
+        now = host_now_ns()
         assert self.t0 is not None
         out = []
         if self.burst:
