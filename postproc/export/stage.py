@@ -122,7 +122,7 @@ def target_position_m(targets_json: Path | None, name: str) -> np.ndarray:
     """World position (3,) m of merge target `name` (its `T_W_m` translation)."""
     if targets_json is None:
         raise InputError(f"georeference: no merge/targets.json to find target {name!r} in")
-    document = MergeFolder(targets_json.parent).read_json(targets_json)
+    document = MergeFolder(targets_json.parent).read_targets()
     try:
         pose = np.asarray(document[name]["T_W_m"], float)
     except (KeyError, TypeError, ValueError) as error:

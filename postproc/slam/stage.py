@@ -165,6 +165,16 @@ def probe_gyro(
 ) -> GyroCheck:
     """Track the first `options.probe_s` seconds (no gyro seeding) and compare rotations."""
     pairs = probe_rotations(source, calibration, frontend_options, options.probe_s)
+    return check_probe(source, calibration, pairs, options)
+
+
+def check_probe(
+    source: SlamInput,
+    calibration: CameraCalibration,
+    pairs: ProbeRotations,
+    options: GyroCheckOptions,
+) -> GyroCheck:
+    """The gyro check of `probe_rotations`' pairs against `source`'s IMU."""
     return check_gyro_against_images(
         starts_ns=pairs.starts_ns,
         ends_ns=pairs.ends_ns,

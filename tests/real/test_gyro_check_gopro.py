@@ -43,10 +43,9 @@ from postproc.slam.gyro_check import (
     GyroCheck,
     GyroCheckOptions,
     _gyro_angles,
-    check_gyro_against_images,
 )
 from postproc.slam.inputs import open_input
-from postproc.slam.stage import probe_rotations
+from postproc.slam.stage import check_probe, probe_rotations
 from shared.errors import InputError
 from shared.geometry import so3_log
 
@@ -82,20 +81,12 @@ def _import(shared_data: Path, name: str, folder: Path) -> Path:
 
 
 def _probe(session: Path, options: GyroCheckOptions) -> Probe:
-    """The stage's own probe (`probe_rotations`, then the check), keeping the pairs."""
+    """The stage's own probe (`probe_rotations`, then `check_probe`), keeping the pairs."""
     source = open_input(session)
     calibration = source.calibration
     assert calibration is not None and source.calibration_is_guess
     pairs = probe_rotations(source, calibration, FrontendOptions(), options.probe_s)
-    check = check_gyro_against_images(
-        starts_ns=pairs.starts_ns,
-        ends_ns=pairs.ends_ns,
-        visual_now_from_prev=pairs.now_from_prev,
-        imu=source.imu,
-        imu_from_cam_rotation=calibration.imu_from_cam[:3, :3],
-        focal_px=pairs.focal_px,
-        options=options,
-    )
+    check = check_probe(source, calibration, pairs, options)
     return Probe(session, pairs.starts_ns, pairs.ends_ns, pairs.now_from_prev, check)
 
 
