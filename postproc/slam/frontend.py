@@ -120,13 +120,17 @@ class KltFrontend:
         )
         self._previous: Image | None = None
         self._points = np.zeros((0, 2), dtype=np.float32)
+        # Undistorted normalised coordinates of `_points` (NaN: no inverse), computed once
+        # per point position: the KLT seed, the RANSAC and the output all reuse them.
+        self._xy = np.zeros((0, 2))
         self._ids = np.zeros(0, dtype=np.int64)
         self._next_id = 0
         self.lost_tracks = 0
         self.rejected_tracks = 0
         self.recovered_tracks = 0  # tracks brought back from the anchor after a drought
-        # The last well-tracked frame: image, stamp, points, ids, and R_Cnow_Canchor.
-        self._anchor: tuple[Image, int, npt.NDArray[np.float32], IntArray] | None = None
+        # The last well-tracked frame: image, stamp, points, their normalised coordinates
+        # and ids; and R_Cnow_Canchor.
+        self._anchor: tuple[Image, int, npt.NDArray[np.float32], FloatArray, IntArray] | None = None
         self._now_from_anchor: FloatArray | None = np.eye(3)
         self._lut = _UndistortTable(self.camera)
 
@@ -182,14 +186,19 @@ class KltFrontend:
         # (Pre-built pyramids would save the KLT's rebuilds, but OpenCV's Python binding
         # takes only images there.)
         if self._previous is not None and len(self._points):
-            self._points, self._ids = self._track_points(
-                self._previous, grey, self._points, self._ids, cam_rotation_now_from_prev
+            self._points, self._xy, self._ids = self._track_points(
+                self._previous,
+                grey,
+                self._points,
+                self._xy,
+                self._ids,
+                cam_rotation_now_from_prev,
             )
         self._bridge_drought(int(stamp_ns), grey, cam_rotation_now_from_prev)
         self._replenish(grey)
         self._previous = grey
         pixels = self._points.astype(np.float64)
-        xy = self._lut.normalised(pixels)
+        xy = self._xy
         ok = np.all(np.isfinite(xy), axis=1)
         return FrameTracks(
             stamp_ns=int(stamp_ns),
@@ -218,26 +227,38 @@ class KltFrontend:
             and seconds_from_ns(stamp_ns - anchor[1]) <= o.drought_max_s
             and anchor[0] is not self._previous
         ):
-            image, _, points, ids = anchor
+            image, _, points, xy, ids = anchor
             missing = ~np.isin(ids, self._ids)
             if missing.any():
-                back, back_ids = self._track_points(
-                    image, grey, points[missing], ids[missing], self._now_from_anchor
+                back, back_xy, back_ids = self._track_points(
+                    image,
+                    grey,
+                    points[missing],
+                    xy[missing],
+                    ids[missing],
+                    self._now_from_anchor,
                 )
                 if len(back):
                     self.recovered_tracks += len(back)
                     self._points = np.vstack([self._points, back]).astype(np.float32)
+                    self._xy = np.vstack([self._xy, back_xy])
                     self._ids = np.concatenate([self._ids, back_ids])
         if len(self._points) >= o.anchor_min_tracks:
-            self._anchor = (grey, stamp_ns, self._points.copy(), self._ids.copy())
+            self._anchor = (
+                grey,
+                stamp_ns,
+                self._points.copy(),
+                self._xy.copy(),
+                self._ids.copy(),
+            )
             self._now_from_anchor = np.eye(3)
 
     def _predict(
-        self, points: npt.NDArray[np.float32], rotation: FloatArray | None
+        self, points: npt.NDArray[np.float32], xy: FloatArray, rotation: FloatArray | None
     ) -> npt.NDArray[np.float32]:
+        """Where the gyro rotation moves `points` (normalised coordinates `xy`)."""
         if rotation is None:
             return points.copy()
-        xy = self._lut.normalised(points.astype(np.float64))
         rays = np.column_stack([xy, np.ones(len(xy))])
         predicted = self.camera.project(rays @ np.asarray(rotation).T)
         bad = ~np.all(np.isfinite(predicted), axis=1)
@@ -249,11 +270,13 @@ class KltFrontend:
         previous: Image,
         current: Image,
         points: npt.NDArray[np.float32],
+        xy: FloatArray,
         ids: IntArray,
         rotation: FloatArray | None,
-    ) -> tuple[npt.NDArray[np.float32], IntArray]:
-        """KLT of `points` from `previous` into `current`, both ways, then RANSAC;
-        returns the surviving points in `current` and their ids."""
+    ) -> tuple[npt.NDArray[np.float32], FloatArray, IntArray]:
+        """KLT of `points` (normalised coordinates `xy`) from `previous` into `current`,
+        forward, back to check, then RANSAC; returns the surviving points in `current`,
+        their normalised coordinates and their ids."""
         o = self.options
         window = (o.klt_window_px, o.klt_window_px)
         criteria = (
@@ -262,7 +285,7 @@ class KltFrontend:
             o.klt_epsilon_px,
         )
         start = points.reshape(-1, 1, 2)
-        guess = self._predict(points, rotation).reshape(-1, 1, 2)
+        guess = self._predict(points, xy, rotation).reshape(-1, 1, 2)
         forward, status, _ = cv2.calcOpticalFlowPyrLK(
             previous,
             current,
@@ -273,13 +296,15 @@ class KltFrontend:
             criteria=criteria,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
+        # The check starts at the start point: a consistent track needs only the finest
+        # levels to come back (see FrontendOptions.klt_check_levels).
         backward, status_back, _ = cv2.calcOpticalFlowPyrLK(
             current,
             previous,
             forward,
             start.copy(),
             winSize=window,
-            maxLevel=o.klt_levels,
+            maxLevel=min(o.klt_check_levels, o.klt_levels),
             criteria=criteria,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
@@ -298,20 +323,25 @@ class KltFrontend:
         )
         self.lost_tracks += int((~keep).sum())
         before = points[keep]
-        after = forward[keep]
+        after = forward[keep].astype(np.float32)
+        after_xy = self._lut.normalised(after.astype(np.float64))
         kept_ids = ids[keep]
-        inliers = self._epipolar_inliers(before, after)
+        inliers = self._epipolar_inliers(before, after, xy[keep], after_xy)
         self.rejected_tracks += int((~inliers).sum())
-        return after[inliers].astype(np.float32), kept_ids[inliers]
+        return after[inliers], after_xy[inliers], kept_ids[inliers]
 
     def _epipolar_inliers(
-        self, previous: npt.NDArray[np.float32], current: npt.NDArray[np.float32]
+        self,
+        previous: npt.NDArray[np.float32],
+        current: npt.NDArray[np.float32],
+        a: FloatArray,
+        b: FloatArray,
     ) -> npt.NDArray[np.bool_]:
+        """Tracks (pixels `previous` -> `current`, normalised `a` -> `b`) that agree with
+        one essential matrix."""
         n = len(previous)
         if n < 8:
             return np.ones(n, dtype=bool)
-        a = self._lut.normalised(previous.astype(np.float64))
-        b = self._lut.normalised(current.astype(np.float64))
         finite: npt.NDArray[np.bool_] = np.all(np.isfinite(a), axis=1) & np.all(
             np.isfinite(b), axis=1
         )
@@ -380,6 +410,7 @@ class KltFrontend:
         # Emptier cells come first in the list; cut at the overall budget.
         added = np.vstack(new_points).astype(np.float32)[: o.max_features - len(self._points)]
         self._points = np.vstack([self._points, added]).astype(np.float32)
+        self._xy = np.vstack([self._xy, self._lut.normalised(added.astype(np.float64))])
         ids = np.arange(self._next_id, self._next_id + len(added), dtype=np.int64)
         self._next_id += len(added)
         self._ids = np.concatenate([self._ids, ids])

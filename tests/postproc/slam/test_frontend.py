@@ -214,3 +214,44 @@ def test_new_corners_wait_until_enough_features_are_missing(rendered) -> None:
     # Some track is lost in most frames: refilled in most with 1, far fewer with 8.
     assert refills_by_missing[1] >= len(stamps) // 2
     assert 1 <= refills_by_missing[8] <= refills_by_missing[1] // 2
+
+
+def test_normalised_coordinates_are_the_tables_of_the_pixels(rendered) -> None:
+    """The frontend keeps each point's normalised coordinates from where it was tracked
+    (or found) instead of undistorting every point again each frame: what it returns
+    must still be the table's undistortion of the returned pixels, exactly, through
+    tracking, new corners and a bridged drought."""
+    stamps, world_from_cam, images, renderer = rendered
+    frontend = KltFrontend(FrontendOptions(width_px=480), renderer.camera)
+    noise = np.random.default_rng(3).integers(0, 255, size=images[0].shape, dtype=np.uint8)
+    sequence = [*images[:8], noise, *images[8:12]]
+    times = [*stamps[:8], stamps[8] - 1, *stamps[8:12]]
+    poses = [*world_from_cam[:8], world_from_cam[7], *world_from_cam[8:12]]
+    previous = None
+    for stamp, image, pose in zip(times, sequence, poses, strict=True):
+        rotation = None if previous is None else pose[:3, :3].T @ previous[:3, :3]
+        frame = frontend.track(int(stamp), image, cam_rotation_now_from_prev=rotation)
+        previous = pose
+        np.testing.assert_array_equal(frame.xy_normalised, frontend._lut.normalised(frame.pixels))
+    assert frontend.recovered_tracks > 0  # the drought bridge ran
+
+
+def test_the_check_runs_on_klt_check_levels(rendered, monkeypatch) -> None:
+    """The backward (checking) pass uses `klt_check_levels`, never more than the forward."""
+    levels: list[int] = []
+    real = cv2.calcOpticalFlowPyrLK
+
+    def spy(*args, **kwargs):
+        levels.append(kwargs["maxLevel"])
+        return real(*args, **kwargs)
+
+    # The frontend calls it through the cv2 module: patched there, for this test only.
+    monkeypatch.setattr(cv2, "calcOpticalFlowPyrLK", spy)
+    stamps, _, images, renderer = rendered
+    for check, expected in ((1, [3, 1]), (5, [3, 3])):
+        levels.clear()
+        options = FrontendOptions(width_px=480, klt_levels=3, klt_check_levels=check)
+        frontend = KltFrontend(options, renderer.camera)
+        frontend.track(int(stamps[0]), images[0])
+        frontend.track(int(stamps[1]), images[1])
+        assert levels == expected
