@@ -7,10 +7,12 @@ Usage:
     .venv/bin/python bench/bench_slam.py --long [--long-minutes 45] [--window 300]
     .venv/bin/python bench/bench_slam.py --real [--only handheld_a karma ...] [--width PX]
     .venv/bin/python bench/bench_slam.py --speed [--duration 40] [--seed 1]
+                                         [--speed-inputs euroc h264]
 
-`--speed`: the stage at its defaults on one rendered 960x540, 30 fps session; prints
-the real-time factor per wall second and per CPU second (load average beside it), the
-ATE and the CPU seconds of each of the stage's threads (decode, frontend, estimator).
+`--speed`: the stage at its defaults on one rendered 960x540, 30 fps session, from its
+EuRoC copy (PNG) and from its MP4 imported as a session folder (H.264); prints the
+real-time factor per wall second and per CPU second (load average beside it), the ATE
+and the CPU seconds of each of the stage's threads (decode, frontend, estimator).
 
 `--long`: a 45-minute feature-level dive (the diver sweeps the 40 m wreck side
 back and forth, so features never run out); prints the process RSS and the
@@ -73,6 +75,7 @@ from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.errors import StageError
 from shared.folders import SessionFolder, SlamFolder
 from shared.formats.euroc import read_euroc
+from shared.formats.recordings import open_recording
 from shared.trajectory import Trajectory, ate
 from sim.features import DiverMotion, Sinusoids, SyntheticOptions, simulate_sequence
 from sim.survey import SurveyOptions
@@ -293,10 +296,12 @@ def rendered(
             )
 
 
-def speed(work: Path, *, duration_s: float, seed: int) -> None:
+def speed(work: Path, *, duration_s: float, seed: int, inputs: list[str]) -> None:
     """Real-time factor of the stage at its defaults on one rendered 960x540, 30 fps
-    session (the size and rate of issue #23): video seconds per wall second and per CPU
-    second of the process (every thread), with the load average beside them, and the ATE."""
+    session (the size and rate of issue #23), from its EuRoC copy (PNG images) and from
+    its GoPro-like MP4 imported as a session folder (H.264): video seconds per wall
+    second and per CPU second of the process (every thread), with the load average
+    beside them, the CPU seconds of each thread and the ATE."""
     survey = work / f"survey_1x{duration_s:.0f}s_seed{seed}_960x540@30"
     if not survey.is_dir():
         print(f"-- rendering the survey into {survey} (once)")
@@ -305,7 +310,7 @@ def speed(work: Path, *, duration_s: float, seed: int) -> None:
                 sessions=1,
                 duration_s=duration_s,
                 seed=seed,
-                video=False,
+                video=True,
                 workers=2,
                 width=960,
                 height=540,
@@ -316,27 +321,74 @@ def speed(work: Path, *, duration_s: float, seed: int) -> None:
     euroc = survey / "session_00" / "euroc"
     data = read_euroc(euroc)
     assert data.groundtruth is not None and data.camera is not None
-    out = work / f"slam_{survey.name}_speed"
-    run_slam(SlamOptions(), euroc, out, overwrite=True)
-    stats = SlamFolder(out).read_stats()
-    estimate = SlamFolder(out).read_trajectory()
     shift_ns = ns_from_seconds(data.camera.timeshift_cam_imu_s)
-    estimate = Trajectory(estimate.stamps_ns + shift_ns, estimate.poses)
-    result = ate(estimate, data.groundtruth, align="se3", max_dt_ns=3_000_000)
-    print(
-        f"-- speed: 960x540 @ 30 fps, {stats['sequence_duration_s']:.1f} s of video, "
-        f"frontend {stats['frontend_width_px']} px, {os.cpu_count()} CPUs\n"
-        f"   wall {stats['run_time_s']:.1f} s (RTF {stats['real_time_factor']:.2f}), "
-        f"CPU {stats['cpu_time_s']:.1f} s (RTF per CPU second "
-        f"{stats['real_time_factor_cpu']:.2f}), load average {stats['load_average_1min']:.1f}, "
-        f"ATE {result.rmse_m * 1000:.1f} mm, keyframes {stats['keyframes']}"
-    )
-    threads = stats.get("cpu_time_threads_s") or {}
-    if threads:
+    for kind in inputs:
+        if kind == "euroc":
+            recording, clock_ns = euroc, 0
+        else:
+            video = survey / "session_00" / "gopro" / "GX010001.MP4"
+            if not video.is_file():
+                print(f"-- speed, session (H.264): skipped, {survey} was rendered without video")
+                continue
+            recording = _import_rendered(video, survey / "calib", work / f"{survey.name}_h264")
+            # The import stamps the frames on the GoPro's clock: move them onto the
+            # EuRoC copy's (the same images, in the same order).
+            clock_ns = _first_frame_ns(euroc) - _first_frame_ns(recording)
+        out = work / f"slam_{survey.name}_speed_{kind}"
+        run_slam(SlamOptions(), recording, out, overwrite=True)
+        stats = SlamFolder(out).read_stats()
+        estimate = SlamFolder(out).read_trajectory()
+        # Ground truth is on the IMU clock; the trajectory on the camera clock.
+        estimate = Trajectory(estimate.stamps_ns + clock_ns + shift_ns, estimate.poses)
+        result = ate(estimate, data.groundtruth, align="se3", max_dt_ns=3_000_000)
+        label = "EuRoC (PNG)" if kind == "euroc" else "session (H.264)"
         print(
-            "   CPU per thread: "
-            + ", ".join(f"{name} {seconds:.1f} s" for name, seconds in threads.items())
+            f"-- speed, {label}: 960x540 @ 30 fps, {stats['sequence_duration_s']:.1f} s of "
+            f"video, frontend {stats['frontend_width_px']} px, {os.cpu_count()} CPUs\n"
+            f"   wall {stats['run_time_s']:.1f} s (RTF {stats['real_time_factor']:.2f}), "
+            f"CPU {stats['cpu_time_s']:.1f} s (RTF per CPU second "
+            f"{stats['real_time_factor_cpu']:.2f}), load average "
+            f"{stats['load_average_1min']:.1f}, ATE {result.rmse_m * 1000:.1f} mm, "
+            f"keyframes {stats['keyframes']}"
         )
+        threads = stats.get("cpu_time_threads_s") or {}
+        if threads:
+            print(
+                "   CPU per thread: "
+                + ", ".join(f"{name} {seconds:.1f} s" for name, seconds in threads.items())
+                + f" (all threads {sum(threads.values()):.1f} s)"
+            )
+
+
+def _import_rendered(video: Path, calib: Path, session: Path) -> Path:
+    """The rendered MP4 as a session folder (`gopro import` with the render's calibration)."""
+    if SessionFolder(session).recording.is_file():
+        return session
+    env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
+    command = [sys.executable, "-m", "field.cli", "gopro", "import", str(video)]
+    calibration = ["--camchain", str(calib / "camchain.yaml")]
+    calibration += ["--imu-yaml", str(calib / "imu.yaml")]
+    done = subprocess.run(
+        [*command, "--out", str(session), *calibration],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"gopro import failed: {done.stderr.strip().splitlines()[-1:]}")
+    return session
+
+
+def _first_frame_ns(recording: Path) -> int:
+    """Stamp (ns) of the first image of a recording."""
+    frames = open_recording(recording).frames(grayscale=True)
+    try:
+        return next(iter(frames)).stamp_ns
+    finally:
+        close = getattr(frames, "close", None)
+        if close is not None:
+            close()
 
 
 # ------------------------------------------------------------------ real recordings
@@ -659,6 +711,13 @@ def main() -> None:
         help="only the real-time factor on one rendered 960x540, 30 fps session (--duration)",
     )
     parser.add_argument(
+        "--speed-inputs",
+        nargs="+",
+        choices=("euroc", "h264"),
+        default=["euroc", "h264"],
+        help="with --speed: the EuRoC copy (PNG), the imported MP4 (H.264) or both",
+    )
+    parser.add_argument(
         "--only", nargs="*", help="with --real: these recordings (handheld_a, karma, ...)"
     )
     parser.add_argument("--long-minutes", type=float, default=45.0)
@@ -670,7 +729,7 @@ def main() -> None:
         return
     if args.speed:
         args.work.mkdir(parents=True, exist_ok=True)
-        speed(args.work, duration_s=args.duration, seed=args.seed)
+        speed(args.work, duration_s=args.duration, seed=args.seed, inputs=args.speed_inputs)
         return
     if args.real:
         width = args.width if "--width" in sys.argv else None
