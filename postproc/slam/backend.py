@@ -62,6 +62,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from postproc.slam.options import GRAVITY_M_S2 as GRAVITY_M_S2
 from postproc.slam.options import BackendOptions as BackendOptions
@@ -764,11 +765,16 @@ class VisualInertialBackend:
     def preintegrate(self, imu: ImuSamples, start_ns: int, end_ns: int, bias: Any) -> Any:
         """A fresh preintegration of `imu` over [start_ns, end_ns] with `bias` (for frame poses)."""
         pim = self.gtsam.PreintegratedCombinedMeasurements(self._preint_params, bias)
+        self.integrate(pim, imu, start_ns, end_ns)
+        return pim
+
+    @staticmethod
+    def integrate(pim: Any, imu: ImuSamples, start_ns: int, end_ns: int) -> None:
+        """Add the IMU readings of [start_ns, end_ns] to the preintegration `pim`."""
         if end_ns > start_ns:
             accel, gyro, dt = imu_intervals(imu, start_ns, end_ns)
             for a, w, d in zip(accel, gyro, dt, strict=True):
                 pim.integrateMeasurement(a, w, d)
-        return pim
 
     def bias_of(self, k: int) -> Any:
         """The gtsam bias object of keyframe k."""
@@ -955,19 +961,19 @@ class VisualInertialBackend:
     ) -> int:
         o = self.options
         seen_now: dict[int, list[tuple[int, FloatArray]]] = {}
-        cam_from_session_k = invert_pose(self._poses[k] @ self.imu_from_cam)
-        for tid_raw, xy in zip(track_ids.tolist(), xy_normalised, strict=True):
-            tid = int(tid_raw)
+        ids = [int(t) for t in track_ids.tolist()]
+        # Gate the observations of known landmarks against the current estimate, all at
+        # once: a leftover outlier of the frontend must not drag a landmark (Huber bounds
+        # its pull, not its presence).
+        known = [
+            i for i, t in enumerate(ids) if t not in self._frozen_points and t in self._landmarks
+        ]
+        passes = iter(self._gate(k, [ids[i] for i in known], xy_normalised[known]).tolist())
+        for tid, xy in zip(ids, xy_normalised, strict=True):
             if tid in self._frozen_points:
                 continue  # retired with its keyframes; not re-added as a new landmark
             if tid in self._landmarks:
-                # Gate against the current estimate: a leftover outlier of the frontend
-                # must not drag a landmark (Huber bounds its pull, not its presence).
-                point = self._isam.calculateEstimatePoint3(self._L(tid))
-                p_c = cam_from_session_k[:3, :3] @ point + cam_from_session_k[:3, 3]
-                if p_c[2] > o.min_depth_m and (
-                    self.focal_px * np.linalg.norm(p_c[:2] / p_c[2] - xy) <= o.max_gate_px
-                ):
+                if next(passes):
                     graph.add(self._projection_factor(k, tid, xy))
                 else:
                     self.stats.gated_observations += 1
@@ -1010,6 +1016,25 @@ class VisualInertialBackend:
             added += 1
         self.stats.landmarks = len(self._landmarks)
         return added
+
+    def _gate(
+        self, k: int, track_ids: list[int], xy_normalised: FloatArray
+    ) -> npt.NDArray[np.bool_]:
+        """Which observations (normalised (N, 2)) of landmarks `track_ids` by keyframe `k`
+        lie in front of it and within `max_gate_px` of the landmark's estimate."""
+        if not track_ids:
+            return np.zeros(0, dtype=bool)
+        o = self.options
+        cam_from_session = invert_pose(self._poses[k] @ self.imu_from_cam)
+        points = np.array([self._isam.calculateEstimatePoint3(self._L(t)) for t in track_ids])
+        p_c = points @ cam_from_session[:3, :3].T + cam_from_session[:3, 3]
+        in_front = p_c[:, 2] > o.min_depth_m
+        with np.errstate(divide="ignore", invalid="ignore"):
+            error_px = self.focal_px * np.linalg.norm(
+                p_c[:, :2] / p_c[:, 2:3] - xy_normalised, axis=1
+            )
+        passed: npt.NDArray[np.bool_] = in_front & (error_px <= o.max_gate_px)
+        return passed
 
     def _triangulation_ok(
         self, point: FloatArray, cam_from_session: FloatArray, xy: FloatArray

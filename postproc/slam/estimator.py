@@ -728,11 +728,15 @@ class SlamEstimator:
             state = states[j]
             nav = gtsam.NavState(gtsam.Pose3(state.session_from_body), state.velocity_m_s)
             bias = gtsam.imuBias.ConstantBias(state.accel_bias_m_s2, state.gyro_bias_rad_s)
-            t0 = self._frame_stamps[start] + self._shift_ns
+            # One preintegration carried from frame to frame (not one from the keyframe to
+            # each frame: that was quadratic in the frames between keyframes).
+            t = self._frame_stamps[start] + self._shift_ns
+            pim = backend.preintegrate(self.imu, t, t, bias)
             predicted = []
             for f in range(start, end + 1):
-                t = min(self._frame_stamps[f] + self._shift_ns, self._imu_end_ns)
-                pim = backend.preintegrate(self.imu, t0, t, bias)
+                t_next = min(self._frame_stamps[f] + self._shift_ns, self._imu_end_ns)
+                backend.integrate(pim, self.imu, t, t_next)
+                t = max(t, t_next)
                 predicted.append(pim.predict(nav, bias).pose().matrix())
             if j + 1 < len(kf_idx):
                 target = states[j + 1].session_from_body

@@ -72,11 +72,15 @@ def mean_specific_force(imu: ImuSamples, start_ns: int, window_s: float) -> Floa
     from postproc.slam.backend import imu_intervals
 
     accel, gyro, dt = imu_intervals(imu, start_ns, end_ns)
+    # The orientation at the start of each piece (the exponentials all at once; the
+    # products in order, as before: a 10 s window is 2000 pieces at 200 Hz).
+    steps = so3_exp(gyro * dt[:, None])
+    rotations = np.empty_like(steps)
     R = np.eye(3)
-    total = np.zeros(3)
-    for a, w, d in zip(accel, gyro, dt, strict=True):
-        total += (R @ a) * d
-        R = R @ so3_exp(w * d)
+    for i, step in enumerate(steps):
+        rotations[i] = R
+        R = R @ step
+    total = np.einsum("nij,nj,n->i", rotations, accel, dt)
     result: FloatArray = total / dt.sum()
     return result
 

@@ -158,6 +158,64 @@ def test_imu_intervals_cover_the_span_exactly() -> None:
         imu_intervals(imu, 900_000_000, 1_100_000_000)
 
 
+def test_the_gate_keeps_observations_near_the_landmark_estimate() -> None:
+    """New observations of known landmarks are gated all at once against the estimate:
+    within `max_gate_px` of the landmark's projection and in front of the camera."""
+    seq = simulate_sequence(SyntheticOptions(duration_s=4.0, seed=2))
+    estimator = SlamEstimator(
+        EstimatorOptions(),
+        focal_px=seq.camera.fx,
+        imu_from_cam=seq.imu_from_cam,
+        imu=seq.imu,
+        imu_noise=seq.imu_noise(),
+    )
+    for frame in seq.frames:
+        estimator.process(frame)
+    backend = estimator.backend
+    k = backend.num_keyframes - 1
+    ids = sorted(backend._landmarks)[:20]
+    assert len(ids) == 20
+    cam_from_session = invert_pose(backend.session_from_body(k) @ seq.imu_from_cam)
+    points = np.array([backend.landmark_position(t) for t in ids])
+    p_c = points @ cam_from_session[:3, :3].T + cam_from_session[:3, 3]
+    in_front = p_c[:, 2] > 0.2
+    xy = p_c[:, :2] / p_c[:, 2:3]
+    off = xy + np.array([14.0, 0.0]) / backend.focal_px  # 14 px: inside the 15 px gate
+    far = xy + np.array([0.0, 16.0]) / backend.focal_px  # 16 px: outside
+    np.testing.assert_array_equal(backend._gate(k, ids, xy), in_front)
+    np.testing.assert_array_equal(backend._gate(k, ids, off), in_front)
+    assert not backend._gate(k, ids, far).any()
+    assert backend._gate(k, [], np.zeros((0, 2))).shape == (0,)
+
+
+def test_preintegration_carried_over_pieces_predicts_as_one() -> None:
+    """Frame poses carry one preintegration from frame to frame (`integrate` piece by
+    piece); it must predict what one preintegration over the whole span does."""
+    import gtsam
+
+    seq = simulate_sequence(SyntheticOptions(duration_s=2.0, seed=3))
+    backend = VisualInertialBackend(
+        BackendOptions(), focal_px=450.0, imu_from_cam=seq.imu_from_cam, imu_noise=seq.imu_noise()
+    )
+    bias = gtsam.imuBias.ConstantBias(np.array([0.01, -0.02, 0.03]), np.array([1e-3, 0, -2e-3]))
+    nav = gtsam.NavState(gtsam.Pose3(), np.array([0.2, 0.0, -0.1]))
+    t0 = int(seq.imu.stamps_ns[10]) + 1_234_567
+    cuts = [t0 + k * 33_333_333 for k in range(1, 8)]
+    whole = backend.preintegrate(seq.imu, t0, cuts[-1], bias)
+    pieces = backend.preintegrate(seq.imu, t0, t0, bias)
+    start = t0
+    for cut in cuts:
+        backend.integrate(pieces, seq.imu, start, cut)
+        start = cut
+    assert pieces.deltaTij() == pytest.approx(whole.deltaTij(), abs=1e-12)
+    a = whole.predict(nav, bias).pose().matrix()
+    b = pieces.predict(nav, bias).pose().matrix()
+    # Only the midpoint readings around the extra cuts differ (measured 1.5 um over the
+    # 0.23 s and 5 cm here).
+    np.testing.assert_allclose(b, a, atol=1e-5)
+    assert not np.array_equal(b, np.eye(4))
+
+
 def test_triangulation_and_parallax() -> None:
     rng = np.random.default_rng(4)
     point = np.array([0.3, -0.2, 4.0])
