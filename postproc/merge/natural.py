@@ -68,6 +68,7 @@ def match_sessions(
     *,
     drift_rates: Mapping[str, FloatArray],
     tilt_variance_rad2: float,
+    keyframe_noise: Mapping[str, FloatArray] | None = None,
 ) -> list[PairEvidence]:
     """Place recognition and verification for every pair of sessions (a before b).
 
@@ -76,8 +77,17 @@ def match_sessions(
     (6,) (rad²/s, m²/s) of its SLAM. tilt_variance_rad2: the variance given to each
     pair's relative roll and pitch, which the candidates take from gravity (zero) and
     do not measure: the two IMUs' tilt errors (2σ²), or a large value when the joint
-    estimate applies the gravity prior itself. Returns one `PairEvidence` per pair.
+    estimate applies the gravity prior itself. keyframe_noise: per session each
+    keyframe's own pose error variances (6,) (rad², m²) where measured (its targets'
+    drift model); the others get `keyframe_noise_*` of the options. Returns one
+    `PairEvidence` per pair.
     """
+    prior_noise = np.array(
+        [np.deg2rad(options.keyframe_noise_rotation_deg) ** 2] * 3
+        + [options.keyframe_noise_translation_m**2] * 3
+    )
+    noise = {s.name: prior_noise for s in sessions}
+    noise.update(keyframe_noise or {})
     features = {s.name: session_features(options, s) for s in sessions}
     descriptors = [f.descriptors for kfs in features.values() for f in kfs]
     total = sum(len(d) for d in descriptors)
@@ -105,6 +115,7 @@ def match_sessions(
                     vectors,
                     drift_rates=drift_rates,
                     tilt_variance_rad2=tilt_variance_rad2,
+                    keyframe_noise=noise,
                 )
             )
     return results
@@ -119,6 +130,7 @@ def _match_pair(
     *,
     drift_rates: Mapping[str, FloatArray],
     tilt_variance_rad2: float,
+    keyframe_noise: Mapping[str, FloatArray],
 ) -> PairEvidence:
     evidence = PairEvidence(a.name, b.name)
     fa, fb = features[a.name], features[b.name]
@@ -206,27 +218,43 @@ def _match_pair(
         floor=floor,
         start=start,
         fixed_axes=2,
+        keyframe_noise_a=keyframe_noise[a.name],
+        keyframe_noise_b=keyframe_noise[b.name],
+        max_whitened_sq=options.max_candidate_chi2,
     )
+    used = pair.inliers
+    rejected = int(np.count_nonzero(~used))
+    group_stamps = evidence.consistent
+    evidence.rejected = [c for c, keep in zip(group_stamps, used, strict=True) if not keep]
+    evidence.consistent = [c for c, keep in zip(group_stamps, used, strict=True) if keep]
+    if len(evidence.consistent) < options.min_consistent:
+        evidence.reason = (
+            f"{len(chosen)} verified candidates agree on T_Sa_Sb but {rejected} of them lie "
+            f"beyond their modelled errors (at least {options.min_consistent} needed)"
+        )
+        return evidence
     pose, covariance = pair.a_from_b, pair.covariance.copy()
     # Roll and pitch come from gravity, not from the images (`refine_yaw_translation`).
     covariance[:2, :] = 0.0
     covariance[:, :2] = 0.0
     covariance[0, 0] = covariance[1, 1] = tilt_variance_rad2
-    evidence.gains_a = pair.gains_a
-    evidence.gains_b = pair.gains_b
-    evidence.times_a_s = times_a
-    evidence.times_b_s = times_b
+    evidence.gains_a = pair.gains_a[used]
+    evidence.gains_b = pair.gains_b[used]
+    evidence.times_a_s = times_a[used]
+    evidence.times_b_s = times_b[used]
     evidence.mergeable = True
-    evidence.reason = f"{len(chosen)} of {len(verified)} verified candidates agree"
+    evidence.reason = f"{len(chosen)} of {len(verified)} verified candidates agree" + (
+        f", {rejected} of them dropped beyond their modelled errors" if rejected else ""
+    )
     evidence.a_from_b = pose
     evidence.covariance = covariance
-    evidence.poses = chosen
+    evidence.poses = chosen[used]
     log.info(
         "%s-%s: %d candidates, %d verified, %d consistent",
         a.name,
         b.name,
         len(evidence.candidates),
         len(verified),
-        len(chosen),
+        len(evidence.consistent),
     )
     return evidence

@@ -43,6 +43,15 @@ class PlaceOptions:
         noise (1 sigma) of the drift-aware mean.
     place_gap_s: candidates within this (s) in both sessions film one place and share
         their error (`candidate_clusters`).
+    keyframe_noise_rotation_deg / keyframe_noise_translation_m: each keyframe's own SLAM
+        pose error besides the drift (1 sigma per axis, about the camera), for sessions
+        whose targets do not measure it (`averaging.DriftModel.noise`); every candidate
+        that uses a keyframe carries all of it (`places.pair_place_mean`). The targets'
+        drift model measured 0.10-0.21 deg and 0.7-1.3 cm on the simulated wreck.
+    max_candidate_chi2: a consistent candidate whose residual about the pair's mean,
+        whitened by its own modelled covariance (yaw and translation, where its errors
+        pivot), exceeds this is dropped (18.5: the 99.9 % point of chi-square with 4 dof;
+        `places.pair_place_mean`). None: keep every consistent candidate.
     rotation_from_images: take each candidate's yaw from the query and reference images
         (essential matrix) instead of the PnP against the triangulated local map (off:
         on the simulated wreck it was no better, 0.8 against 0.7 deg per candidate).
@@ -73,6 +82,9 @@ class PlaceOptions:
     noise_floor_rotation_deg: float = 0.01
     noise_floor_translation_m: float = 0.002
     place_gap_s: float = 5.0
+    keyframe_noise_rotation_deg: float = 0.15
+    keyframe_noise_translation_m: float = 0.01
+    max_candidate_chi2: float | None = 18.5
     gravity_sigma_deg: float = 0.1
     rotation_from_images: bool = False
 
@@ -126,9 +138,11 @@ class MergeOptions:
         both filmed and estimate the transforms jointly (`joint.solve_joint`); targets
         become optional. "auto": only when the targets cannot place every session
         (none given, or a session shares no target with the others): on the simulated
-        wreck's 240 s dives, targets and features together are still less accurate
-        than targets alone (docs/benchmarks.md, "Merge"). True: always. False: targets only, placed
-        session by session (`align.place_sessions`).
+        wreck's 240 s dives, targets and features together still turn the frame
+        further than targets alone (0.133 against 0.070 deg RMS over two seeds; the
+        translation is better, 3.8 against 4.6 cm; docs/benchmarks.md, "Merge").
+        True: always. False: targets only, placed session by session
+        (`align.place_sessions`).
     places: natural-feature settings (`places.PlaceOptions`).
     depth_sigma_m: (joint) each depth-fused session's absolute-depth error (m, 1 sigma):
         the prior on the sessions' relative z.

@@ -26,6 +26,11 @@ transform `T_Sa_Sb`. Per pair of sessions (a, b):
    `pair_place_mean` is the generalised least-squares mean with that covariance
    (each error modelled where it pivots), so the result leans on the places both
    dives filmed early and its translation is not blurred by the candidates' yaw.
+   A keyframe's own pose error is in every candidate that uses it (one query
+   keyframe often matches several places of the other dive), so it is modelled
+   once for all of them; and a candidate whose residual lies beyond its modelled
+   error, tested where it pivots (to centimetres, where the consistency check at
+   Sb's origin must allow decimetres), is dropped.
 
 Pure math and OpenCV calls on arrays: no file I/O (the stage reads images and
 poses). Covariances follow `averaging`: 6x6 of `[δθ, δt]`, rotation first,
@@ -628,7 +633,9 @@ class PairEvidence:
 
     candidates: (query stamp, reference stamp, score) tried; verified: those passing
     PnP and the gravity check with their inliers; consistent: stamps of the verified
-    ones in the agreeing group; mergeable: at least `min_consistent` of them.
+    ones in the agreeing group that the pair's mean uses; rejected: those of the group
+    beyond their modelled errors (`pair_place_mean`); mergeable: at least
+    `min_consistent` consistent ones.
     times_*_s, gains_*: the consistent candidates' times since each anchor and how
     each session's drift there enters `a_from_b` (`PairMean`).
     """
@@ -639,6 +646,7 @@ class PairEvidence:
     verified: list[tuple[int, int, int]] = field(default_factory=list)
     inliers_tried: list[int] = field(default_factory=list)
     consistent: list[tuple[int, int]] = field(default_factory=list)
+    rejected: list[tuple[int, int]] = field(default_factory=list)
     mergeable: bool = False
     reason: str = ""
     a_from_b: FloatArray | None = None
@@ -664,6 +672,7 @@ class PairEvidence:
             "best_inliers_tried": sorted(self.inliers_tried, reverse=True)[:10],
             "consistent": len(self.consistent),
             "consistent_stamps_ns": [list(c) for c in self.consistent],
+            "rejected_stamps_ns": [list(c) for c in self.rejected],
         }
 
 
@@ -696,13 +705,22 @@ class PairMean:
     """A pair's `T_Sa_Sb` (4, 4), its covariance (6, 6) and the drift it carries.
 
     gains_a / gains_b (N, 6, 6): how the drift of session a at each candidate's
-    reference keyframe (of b at its query) enters the mean's error (`joint.DriftShare`).
+    reference keyframe (of b at its query) enters the mean's error (`joint.DriftShare`);
+    zero for a rejected candidate. inliers (N,): the candidates the mean is made of
+    (the others' whitened residual exceeded `max_whitened_sq`).
     """
 
     a_from_b: FloatArray
     covariance: FloatArray
     gains_a: FloatArray
     gains_b: FloatArray
+    inliers: npt.NDArray[np.bool_]
+
+
+def same_keyframe(times_s: FloatArray, *, tolerance_s: float = 1e-3) -> FloatArray:
+    """(N, N) 1 where two candidates use the same keyframe (equal times), else 0."""
+    t = np.asarray(times_s, dtype=np.float64)
+    return (np.abs(t[:, None] - t[None]) <= tolerance_s).astype(np.float64)
 
 
 def pair_place_mean(
@@ -719,6 +737,9 @@ def pair_place_mean(
     start: FloatArray,
     fixed_axes: int = 0,
     iterations: int = 2,
+    keyframe_noise_a: FloatArray | None = None,
+    keyframe_noise_b: FloatArray | None = None,
+    max_whitened_sq: float | None = None,
 ) -> PairMean:
     """Generalised least-squares `T_Sa_Sb` from candidates whose errors pivot about places.
 
@@ -738,18 +759,94 @@ def pair_place_mean(
     (`candidate_clusters`); the independent noise and a place's shared error are
     estimated from the pivot-form residuals (`candidate_noise`, at least `floor` (6,)).
     Per candidate i and j the covariance is
-    `A_i (q_a min(ta_i, ta_j)) A_jᵀ + B_i (q_b min(tb_i, tb_j)) B_jᵀ + Q_i (c [same
-    place] + s δ_ij) Q_jᵀ` (A, B, Q: pivots at the reference camera, the query camera
-    in b, the query camera in a). Scaled up by the a posteriori variance factor when the
-    candidates scatter more than that; fixed_axes: how many axes every candidate holds
-    at the same value by construction (2: roll and pitch from gravity), which carry no
-    scatter and are left out of the factor's degrees of freedom.
+    `A_i (q_a min(ta_i, ta_j) + k_a [same reference keyframe]) A_jᵀ + B_i (q_b min(tb_i,
+    tb_j) + k_b [same query keyframe]) B_jᵀ + Q_i (c [same place] + s δ_ij) Q_jᵀ` (A, B,
+    Q: pivots at the reference camera, the query camera in b, the query camera in a).
+    keyframe_noise_* (6,): each keyframe's own SLAM pose error besides the drift
+    (variances of `[ω, u]` about the camera, rad² and m²; None: 0). Every candidate
+    that uses a keyframe carries all of its error: one query keyframe matched against
+    four places of a moves all four candidates alike, so they are one measurement of
+    that keyframe, not four (the same for a reference keyframe and its local map).
+    Scaled up by the a posteriori variance factor when the candidates scatter more
+    than that; fixed_axes: how many axes every candidate holds at the same value by
+    construction (2: roll and pitch from gravity), which carry no scatter and are left
+    out of the factor's degrees of freedom and of the outlier test.
+
+    max_whitened_sq: a candidate whose residual about the mean, whitened by its own
+    modelled covariance (drift, keyframe and place noise, the mean's uncertainty) over
+    the free axes, exceeds this is rejected and the mean recomputed without it, until
+    no more go (never below 3 candidates). The consistency check before
+    (`consistent_candidates`) compares the candidates at Sb's origin, where a yaw error
+    of 1 deg at a place 15 m away is 26 cm, so its translation tolerance must be wide;
+    here the translation is tested where it pivots, to centimetres. None: no test.
     """
     T = np.asarray(poses, dtype=np.float64)
+    keep = np.ones(T.shape[0], dtype=bool)
+    while True:
+        chosen = np.flatnonzero(keep)
+        mean, whitened_sq = _pair_place_gls(
+            T[chosen],
+            np.asarray(times_a_s, dtype=np.float64)[chosen],
+            np.asarray(times_b_s, dtype=np.float64)[chosen],
+            np.asarray(reference_positions, dtype=np.float64)[chosen],
+            np.asarray(query_positions, dtype=np.float64)[chosen],
+            rate_a=np.asarray(rate_a, dtype=np.float64),
+            rate_b=np.asarray(rate_b, dtype=np.float64),
+            clusters=np.asarray(clusters)[chosen],
+            floor=floor,
+            start=start,
+            fixed_axes=fixed_axes,
+            iterations=iterations,
+            keyframe_noise_a=keyframe_noise_a,
+            keyframe_noise_b=keyframe_noise_b,
+        )
+        if max_whitened_sq is None or len(chosen) <= 3:
+            break
+        worst = int(np.argmax(whitened_sq))
+        if whitened_sq[worst] <= max_whitened_sq:
+            break
+        # One at a time, the worst first: a gross candidate inflates the noise estimate
+        # and the others' residuals until it is gone.
+        keep[chosen[worst]] = False
     n = T.shape[0]
-    ta = np.maximum(np.asarray(times_a_s, dtype=np.float64), 0.0)
-    tb = np.maximum(np.asarray(times_b_s, dtype=np.float64), 0.0)
-    same = (np.asarray(clusters)[:, None] == np.asarray(clusters)[None]).astype(np.float64)
+    gains_a = np.zeros((n, 6, 6))
+    gains_b = np.zeros((n, 6, 6))
+    gains_a[keep] = mean.gains_a
+    gains_b[keep] = mean.gains_b
+    return PairMean(mean.a_from_b, mean.covariance, gains_a, gains_b, keep)
+
+
+def _pair_place_gls(
+    T: FloatArray,
+    times_a_s: FloatArray,
+    times_b_s: FloatArray,
+    reference_positions: FloatArray,
+    query_positions: FloatArray,
+    *,
+    rate_a: FloatArray,
+    rate_b: FloatArray,
+    clusters: npt.NDArray[np.int64],
+    floor: FloatArray,
+    start: FloatArray,
+    fixed_axes: int,
+    iterations: int,
+    keyframe_noise_a: FloatArray | None,
+    keyframe_noise_b: FloatArray | None,
+) -> tuple[PairMean, FloatArray]:
+    """`pair_place_mean` over the given candidates; with each one's whitened squared
+    residual (N,) over the free axes."""
+    n = T.shape[0]
+    ta = np.maximum(times_a_s, 0.0)
+    tb = np.maximum(times_b_s, 0.0)
+    same = (clusters[:, None] == clusters[None]).astype(np.float64)
+    # A keyframe's own error reaches every candidate that uses it: a's through the
+    # reference camera (its local map), b's through the query camera.
+    shared_a = np.minimum.outer(ta, ta)[:, None, :] * rate_a[None, :, None]
+    shared_b = np.minimum.outer(tb, tb)[:, None, :] * rate_b[None, :, None]
+    if keyframe_noise_a is not None:
+        shared_a = shared_a + same_keyframe(ta)[:, None, :] * keyframe_noise_a[None, :, None]
+    if keyframe_noise_b is not None:
+        shared_b = shared_b + same_keyframe(tb)[:, None, :] * keyframe_noise_b[None, :, None]
     mean = np.asarray(start, dtype=np.float64).copy()
     design = np.tile(np.eye(6), (n, 1))
     covariance: FloatArray = np.eye(6)
@@ -757,6 +854,8 @@ def pair_place_mean(
     A = np.zeros((n, 6, 6))
     B = np.zeros((n, 6, 6))
     Q = np.zeros((n, 6, 6))
+    sigma = np.eye(6 * n)
+    factor = 1.0
     for _ in range(max(iterations, 1)):
         r = pose_residuals(T, mean)
         rotation = mean[:3, :3]
@@ -767,8 +866,8 @@ def pair_place_mean(
         pivoted = np.einsum("iab,ib->ia", np.linalg.inv(Q), r)
         pivoted -= np.median(pivoted, axis=0)
         noise, shared = candidate_noise(pivoted, clusters, floor=floor)
-        sigma = np.einsum("iak,k,ij,jbk->iajb", A, rate_a, np.minimum.outer(ta, ta), A)
-        sigma += np.einsum("iak,k,ij,jbk->iajb", B, rate_b, np.minimum.outer(tb, tb), B)
+        sigma = np.einsum("iak,ikj,jbk->iajb", A, shared_a, A)
+        sigma += np.einsum("iak,ikj,jbk->iajb", B, shared_b, B)
         sigma += np.einsum("iak,k,ij,jbk->iajb", Q, shared, same, Q)
         sigma += np.einsum("iak,k,ij,jbk->iajb", Q, noise, np.eye(n), Q)
         sigma = sigma.reshape(6 * n, 6 * n)
@@ -778,14 +877,28 @@ def pair_place_mean(
         step = covariance @ (design.T @ solved[:, 6])
         about = r.reshape(-1) - design @ step
         dof = (6 - fixed_axes) * (n - 1)
-        factor = float(about @ np.linalg.solve(sigma, about)) / max(dof, 1)
-        covariance = covariance * max(factor, 1.0)
+        factor = max(float(about @ np.linalg.solve(sigma, about)) / max(dof, 1), 1.0)
+        covariance = covariance * factor
         gain = np.linalg.inv(information) @ solved[:, :6].T
         mean = make_pose(so3_exp(step[:3]) @ mean[:3, :3], mean[:3, 3] + step[3:])
+    r = pose_residuals(T, mean)
+    free = np.arange(fixed_axes, 6)
+    whitened_sq = np.zeros(n)
+    # The modelled covariance, not scaled by the a posteriori factor: a gross candidate
+    # inflates that factor and would hide itself; the noise estimate is median-based.
+    model_covariance = covariance / factor
+    for i in range(n):
+        own = sigma[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] + model_covariance
+        block = own[np.ix_(free, free)]
+        whitened_sq[i] = float(r[i, free] @ np.linalg.solve(block, r[i, free]))
     blocks = gain.reshape(6, n, 6).transpose(1, 0, 2)
-    return PairMean(
-        a_from_b=mean,
-        covariance=0.5 * (covariance + covariance.T),
-        gains_a=np.einsum("iab,ibc->iac", blocks, A),
-        gains_b=np.einsum("iab,ibc->iac", blocks, B),
+    return (
+        PairMean(
+            a_from_b=mean,
+            covariance=0.5 * (covariance + covariance.T),
+            gains_a=np.einsum("iab,ibc->iac", blocks, A),
+            gains_b=np.einsum("iab,ibc->iac", blocks, B),
+            inliers=np.ones(n, dtype=bool),
+        ),
+        whitened_sq,
     )

@@ -240,8 +240,14 @@ def _build(
         else:
             tilt_variance = 2.0 * np.deg2rad(options.places.gravity_sigma_deg) ** 2
         rates = _drift_rates(options, sessions, drift_models)
+        # Each keyframe's own pose error where the targets measured it (their drift
+        # model's per-observation noise), else the places' prior.
         pairs = match_sessions(
-            options.places, sessions, drift_rates=rates, tilt_variance_rad2=tilt_variance
+            options.places,
+            sessions,
+            drift_rates=rates,
+            tilt_variance_rad2=tilt_variance,
+            keyframe_noise={name: model.noise for name, model in drift_models.items()},
         )
         joint = _solve_joint(
             options, sessions, reference, dof, tilt_prior_deg, estimates, pairs, shares, rates

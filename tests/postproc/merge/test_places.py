@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from postproc.merge.averaging import pose_residuals
 from postproc.merge.places import (
     build_vocabulary,
     candidate_clusters,
@@ -163,6 +164,82 @@ def test_pair_place_mean_leans_on_the_earliest_places():
     )
     assert 0.0 < implied[2, 2] <= mean.covariance[2, 2] * (1 + 1e-9)
     assert np.all(np.diag(implied)[3:] <= np.diag(mean.covariance)[3:] * (1 + 1e-9))
+
+
+def test_pair_place_mean_counts_a_shared_keyframe_once():
+    # One query keyframe of b matched at eight places of a: its own pose error (a yaw
+    # about the camera and a shift) is in all eight candidates alike, so averaging them
+    # cannot shrink it; only the PnP's own errors average out.
+    truth = make_pose(_rz(0.3), [1.0, 2.0, 0.0])
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    places = np.column_stack((9 * np.cos(angles), 9 * np.sin(angles), np.zeros(8)))
+    camera = np.array([0.5, -0.5, 0.0])
+    rate = np.array([1e-12] * 6)
+    floor = np.array([np.deg2rad(0.01) ** 2] * 3 + [0.001**2] * 3)
+    keyframe = np.array([np.deg2rad(0.3) ** 2] * 3 + [0.01**2] * 3)
+    d2: dict[bool, list[float]] = {False: [], True: []}
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        yaw, shift = rng.normal(0, np.deg2rad(0.3)), rng.normal(0, 0.01, 3)
+        poses = np.array(
+            [_pivoted(truth, yaw + rng.normal(0, np.deg2rad(0.02)), camera, shift) for _ in places]
+        )
+        poses = np.array([_pivoted(p, 0.0, camera, rng.normal(0, 0.002, 3)) for p in poses])
+        times_a = np.arange(len(places), dtype=np.float64) * 10.0
+        times_b = np.full(len(places), 7.0)
+        for modelled in (False, True):
+            mean = pair_place_mean(
+                poses,
+                times_a,
+                times_b,
+                places,
+                np.tile(camera, (len(places), 1)),
+                rate_a=rate,
+                rate_b=rate,
+                clusters=np.arange(len(places)),
+                floor=floor,
+                start=poses[0],
+                fixed_axes=2,
+                keyframe_noise_b=keyframe if modelled else None,
+            )
+            residual = pose_residuals(mean.a_from_b[None], truth)[0][2:]
+            d2[modelled].append(residual @ np.linalg.solve(mean.covariance[2:, 2:], residual))
+            if modelled:
+                # The keyframe's yaw is in the mean whole: never averaged down.
+                assert mean.covariance[2, 2] > 0.9 * keyframe[2]
+    # Counted eight times, the keyframe's error is claimed 8x smaller than it is.
+    assert np.mean(d2[False]) > 20.0
+    assert np.mean(d2[True]) < 9.0
+
+
+def test_pair_place_mean_drops_a_candidate_beyond_its_modelled_error():
+    truth = make_pose(_rz(0.3), [1.0, 2.0, 0.0])
+    places = np.array([[9.0, 8.0, -1.0], [-6.0, 9.0, 0.5], [8.0, -7.0, 0.0], [-9.0, -5.0, -0.5]])
+    rng = np.random.default_rng(11)
+    poses, positions, times = _place_candidates(rng, truth, places, 6)
+    # A wrong candidate that the consistency box keeps: 15 cm off at its camera, within
+    # the 25 cm a yaw error at 10 m makes normal at Sb's origin.
+    poses[7] = _pivoted(poses[7], 0.0, positions[7], np.array([0.15, -0.05, 0.0]))
+    rate = np.array([1e-12] * 3 + [1e-12] * 3)
+    floor = np.array([np.deg2rad(0.01) ** 2] * 3 + [0.002**2] * 3)
+    common = dict(
+        rate_a=rate,
+        rate_b=rate,
+        clusters=candidate_clusters(times, times, gap_s=5.0),
+        floor=floor,
+        start=poses[0],
+        fixed_axes=2,
+    )
+    kept = pair_place_mean(poses, times, times, positions, positions, **common)
+    tested = pair_place_mean(
+        poses, times, times, positions, positions, max_whitened_sq=18.5, **common
+    )
+    assert kept.inliers.all()
+    assert tested.inliers.tolist() == [k != 7 for k in range(len(poses))]
+    assert np.all(tested.gains_a[7] == 0) and np.all(tested.gains_b[7] == 0)
+    error_kept = np.linalg.norm(kept.a_from_b[:3, 3] - truth[:3, 3])
+    error_tested = np.linalg.norm(tested.a_from_b[:3, 3] - truth[:3, 3])
+    assert error_tested < 0.5 * error_kept
 
 
 def test_candidate_noise_splits_place_and_candidate_errors():
