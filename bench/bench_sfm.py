@@ -90,6 +90,27 @@ def cpu_s() -> float:
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
+def set_refine_option(options: SfmOptions, setting: str) -> None:
+    """Set one `RefineOptions` field from "name=value" (parsed as the field's current type)."""
+    name, _, text = setting.partition("=")
+    if not hasattr(options.refine, name):
+        raise SystemExit(f"--refine {setting}: RefineOptions has no field {name!r}")
+    current = getattr(options.refine, name)
+    value: Any
+    if text.lower() in ("none", ""):
+        value = None
+    elif isinstance(current, bool):
+        value = text.lower() in ("1", "true", "yes", "on")
+    elif isinstance(current, int):
+        value = int(text)
+    elif isinstance(current, float):
+        value = float(text)
+    else:
+        value = text
+    setattr(options.refine, name, value)
+    options.refine.__post_init__()
+
+
 def ate_row(estimate: Trajectory, truth: Trajectory) -> str:
     return "  ".join(
         f"{align} {ate(estimate, truth, align=align).rmse_m * 100:6.2f} cm"
@@ -198,6 +219,7 @@ def refine_only(
         "mean_track_length": float(model.compute_mean_track_length()),
         "mean_reprojection_error_px": float(model.compute_mean_reprojection_error()),
         "rounds": result.rounds,
+        "seconds": result.seconds,
     }
     return stats, total, cpu, result.world_from_cam
 
@@ -224,9 +246,18 @@ def print_rounds(rounds: list[dict[str, float]]) -> None:
         capped = r.get("adjusted_observations_per_point", r.get("observations_per_point", 0.0))
         print(
             f"  round {k} ({'rebuilt' if r['rebuilt_tracks'] else 'first'} pass): BA "
-            f"{r['bundle_adjust_s']:.1f} s, tracks {r['tracks_s']:.1f} s, {r['points']:.0f} "
+            f"{r['bundle_adjust_s']:.1f} s, tracks {r['tracks_s']:.1f} s"
+            + (
+                f" (merge {r['merge_tracks_s']:.1f}, retriangulate {r['retriangulate_s']:.1f}, "
+                f"cap {r['cap_tracks_s']:.1f} s)"
+                if "merge_tracks_s" in r
+                else ""
+            )
+            + f", filter {r['filter_s']:.1f} s, {r['points']:.0f} "
             f"points, {r.get('observations_per_point', 0.0):.1f} observations per point "
-            f"({capped:.1f} adjusted), p95 camera move {r['p95_camera_move_m'] * 100:.1f} cm"
+            f"({capped:.1f} adjusted), p95 camera move {r['p95_camera_move_m'] * 100:.1f} cm "
+            f"({r.get('p95_shape_move_m', float('nan')) * 100:.1f} cm without a common "
+            "similarity)"
         )
 
 
@@ -452,6 +483,13 @@ def main() -> None:
         type=int,
         help="observations per point in each adjustment (0: no cap; default: the stage's)",
     )
+    parser.add_argument(
+        "--refine",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="set a RefineOptions field (repeatable), e.g. robust_prior_loss=false",
+    )
     parser.add_argument("--fractions", default="0.27,0.54,1", help="sizes our stage runs at")
     parser.add_argument(
         "--baseline-fractions", default="0.54", help="sizes the baseline runs at ('' for none)"
@@ -478,12 +516,15 @@ def main() -> None:
     options.refine.num_threads = args.threads
     if args.ba_max_track_length is not None:
         options.refine.ba_max_track_length = args.ba_max_track_length or None
+    for setting in args.refine:
+        set_refine_option(options, setting)
     print(
         f"ours: {options.features.max_num_features} SIFT features, first octave "
         f"{options.features.first_octave or 'auto'}, sequential "
         f"{options.pairs.sequential_neighbours} + spatial {options.pairs.spatial_neighbours} "
         f"pairs per keyframe; at most {options.refine.ba_max_track_length or 'all'} "
         f"observations per point in each adjustment; {os.cpu_count()} cores, load {load()}"
+        + (f"; refine options set: {', '.join(args.refine)}" if args.refine else "")
     )
 
     fractions = [float(f) for f in args.fractions.split(",") if f]
@@ -499,6 +540,10 @@ def main() -> None:
                 f"\n== ours, refinement only: {stats['keyframes']} keyframes, "
                 f"{stats['registered_images']} registered, {stats['points3D']} points, "
                 f"{total:.1f} s wall, {cpu:.1f} s CPU (load {load()})"
+            )
+            print(
+                "  steps (wall): "
+                + ", ".join(f"{k} {v:.1f} s" for k, v in stats["seconds"].items())
             )
             print_rounds(stats["rounds"])
             rows.append(

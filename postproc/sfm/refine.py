@@ -29,6 +29,15 @@ right after it adds the rest back. On a dive that keeps revisiting the wreck the
 lengthen with the dive and an adjustment's cost per keyframe grows with them; the
 cap bounds that growth.
 
+The adjustments take dogleg steps (`RefineOptions.ba_trust_region`). Every adjustment
+with priors first re-aligns the whole model to the priors (COLMAP fits a similarity to
+the prior positions), and where the priors are loose, as at the end of a long dive, only
+they hold the model's placement; Levenberg-Marquardt's damping all but froze that
+placement, so its adjustments ran out of iterations while the cameras still moved
+together by decimetres to metres, and the rounds went on (on bench_sfm.py's 10-minute
+dive the third round moved the cameras by 82 cm, 3 cm of it a change of shape).
+`shape_moves_m` tells the two apart in the round records.
+
 Sessions without a world pose (no shared target in the merge) are tied in
 where natural features allow: their keyframes are registered one by one by
 absolute pose estimation against the model (COLMAP's incremental
@@ -163,6 +172,23 @@ def _camera_moves_m(before: dict[str, FloatArray], after: dict[str, FloatArray])
     return np.array([float(np.linalg.norm(after[n][:3, 3] - before[n][:3, 3])) for n in common])
 
 
+def shape_moves_m(before: dict[str, FloatArray], after: dict[str, FloatArray]) -> FloatArray:
+    """Distances (m) the centres of the cameras present in both moved once the similarity
+    that best maps the old centres onto the new ones is taken out: how much the shape of
+    the path changed, not where the path as a whole went (every adjustment with priors
+    first re-aligns the whole model to the priors, a common similarity)."""
+    common = sorted(before.keys() & after.keys())
+    if len(common) < 3:
+        return _camera_moves_m(before, after)
+    old = np.array([before[n][:3, 3] for n in common])
+    new = np.array([after[n][:3, 3] for n in common])
+    try:
+        R, t, scale = umeyama(old, new, with_scale=True)
+    except ValueError:
+        return _camera_moves_m(before, after)
+    return np.asarray(np.linalg.norm(scale * old @ R.T + t - new, axis=1), dtype=np.float64)
+
+
 def evenly_spaced(count: int, keep: int) -> list[int]:
     """`keep` indices of `range(count)` spread evenly, the first and the last included
     (all of them when `keep >= count`)."""
@@ -236,6 +262,13 @@ class _Mapper:
         self.ba_options.ceres.max_num_images_direct_sparse_cpu_solver = (
             options.ba_max_direct_sparse_images
         )
+        if (
+            options.ba_trust_region == "dogleg"
+            and self.reconstruction.num_images() <= options.ba_max_direct_sparse_images
+        ):
+            # Dogleg needs the direct solver Ceres picks up to that many images (see
+            # `RefineOptions.ba_trust_region`).
+            solver.trust_region_strategy_type = type(solver.trust_region_strategy_type).DOGLEG
         self.mapper = pycolmap.IncrementalMapper(self.cache)
         self.mapper.begin_reconstruction(self.reconstruction)
 
@@ -258,7 +291,9 @@ class _Mapper:
             # the convergence test is on the poses (COLMAP's counts changed observations).
             t0 = time.perf_counter()
             self.mapper.complete_and_merge_tracks(self.tri_options)
+            t_merged = time.perf_counter()
             self.mapper.retriangulate(self.tri_options)
+            t_retriangulated = time.perf_counter()
             points = max(self.reconstruction.num_points3D(), 1)
             observations = self.reconstruction.compute_num_observations()
             dropped = 0
@@ -280,14 +315,19 @@ class _Mapper:
             # The 95th percentile: one weakly seen keyframe at a session's end can swing for
             # a round or two while the rest has long settled.
             typical = float(np.percentile(moves, 95)) if moves.size else float("inf")
+            shape = shape_moves_m(before, after)
             rounds.append(
                 {
                     "seconds": time.perf_counter() - start,
                     "tracks_s": t1 - t0,
+                    "merge_tracks_s": t_merged - t0,
+                    "retriangulate_s": t_retriangulated - t_merged,
+                    "cap_tracks_s": t1 - t_retriangulated,
                     "bundle_adjust_s": t2 - t1,
                     "filter_s": t3 - t2,
                     "max_camera_move_m": move,
                     "p95_camera_move_m": typical,
+                    "p95_shape_move_m": float(np.percentile(shape, 95)) if shape.size else 0.0,
                     "points": float(self.reconstruction.num_points3D()),
                     "observations_per_point": observations / points,
                     "adjusted_observations_per_point": (observations - dropped) / points,
@@ -469,6 +509,7 @@ def refine_with_priors(
         start = time.perf_counter()
         mapper = _Mapper(database_path, result_poses, options, rebuilt=True)
         triangulated = mapper.triangulate()
+        seconds["rebuild_triangulate_s"] = time.perf_counter() - start
         log.info("rebuilt tracks at the refined poses: %d observations", triangulated)
         mapper.refine_rounds(rounds, converged_change_m=options.converged_change_m)
         mapper.close()

@@ -10,7 +10,7 @@ import pytest
 
 from postproc.sfm.database import KeyframeSet
 from postproc.sfm.features import FeatureOptions
-from postproc.sfm.refine import RefineOptions, fit_world_from_session, refine
+from postproc.sfm.refine import RefineOptions, fit_world_from_session, refine, shape_moves_m
 from postproc.sfm.stage import SfmOptions, _fill_missing, run
 from shared.errors import StageError
 from shared.formats.tum import read_tum
@@ -28,6 +28,23 @@ def test_fit_world_from_session_recovers_a_rigid_transform() -> None:
     estimate, rms = fit_world_from_session(local, world)
     np.testing.assert_allclose(estimate, truth, atol=0.02)
     assert 0.005 < rms < 0.03
+
+
+def test_shape_moves_ignore_a_common_similarity() -> None:
+    rng = np.random.default_rng(3)
+    before = make_pose(so3_exp(rng.normal(size=(30, 3))), rng.normal(scale=4.0, size=(30, 3)))
+    similarity = make_pose(so3_exp([0.1, -0.2, 0.3]), [2.0, -1.0, 0.5])
+    after = similarity @ before
+    after[:, :3, 3] *= 1.1  # and a scale about the origin
+    names = [f"k{i:02d}" for i in range(30)]  # in sorted order
+    moved = dict(zip(names, after, strict=True))
+    np.testing.assert_allclose(
+        shape_moves_m(dict(zip(names, before, strict=True)), moved), 0.0, atol=1e-9
+    )
+    moved["k07"] = moved["k07"].copy()
+    moved["k07"][:3, 3] += [0.0, 0.0, 0.3]  # one camera bends the path
+    shape = shape_moves_m(dict(zip(names, before, strict=True)), moved)
+    assert np.argmax(shape) == 7 and 0.2 < shape[7] < 0.3
 
 
 def test_fill_missing_carries_the_nearest_correction() -> None:
@@ -61,6 +78,7 @@ def test_fill_missing_carries_the_nearest_correction() -> None:
         {"first_pass_converged_change_m": 0.0},
         {"ba_max_direct_sparse_images": -1},
         {"ba_max_track_length": 2},
+        {"ba_trust_region": "newton"},
     ],
 )
 def test_refine_options_reject_bad_values(kwargs: dict[str, object]) -> None:
