@@ -4,7 +4,7 @@
         [--keyframe-step 0.25] [--max-image-size 960] [--backend auto] [--keep DIR]
         [--no-view-selection] [--min-baseline-rel 0.3] [--min-rotation-deg 20]
         [--project-keyframes 5000] [--max-neighbours 4] [--far-neighbours 2]
-        [--single-image-neighbours 0 --single-image-radius 0.05]
+        [--single-image-neighbours 0 --single-image-radius 0.05] [--single-image-min-pairs 0]
 
 Simulates session 0 of the survey (`sim.survey`: diver route along the starboard
 hull, underwater image model with noise), picks keyframes every `--keyframe-step` metres
@@ -40,7 +40,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from postproc.dense.colmap_io import DenseWorkspace, read_pinhole_views, write_known_pose_model
+from postproc.dense.colmap_io import (
+    DenseWorkspace,
+    PinholeView,
+    read_pinhole_views,
+    write_known_pose_model,
+)
 from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, visibility
 from postproc.dense.fusion import FusionOptions
 from postproc.dense.stage import DenseOptions, run
@@ -143,6 +148,10 @@ def main() -> None:
     parser.add_argument("--single-image-radius", type=float,
                         default=DenseOptions().mesh_single_image_radius_m,
                         help="mesh: radius of that neighbour count, metres")  # fmt: skip
+    parser.add_argument("--single-image-min-pairs", type=int,
+                        default=DenseOptions().mesh_single_image_min_pairs,
+                        help="mesh: keep a point of one depth map where this many of its "
+                             "stereo pairs agreed (0: off)")  # fmt: skip
     args = parser.parse_args()
 
     sim = SurveySimulator(
@@ -189,6 +198,7 @@ def main() -> None:
         max_image_size_px=args.max_image_size, backend=args.backend, make_mesh=not args.no_mesh,
         mesh_single_image_neighbours=args.single_image_neighbours,
         mesh_single_image_radius_m=args.single_image_radius,
+        mesh_single_image_min_pairs=args.single_image_min_pairs,
     )  # fmt: skip
     options.fusion = FusionOptions(
         min_num_pixels=args.min_num_pixels, max_depth_error_rel=args.max_depth_error
@@ -266,6 +276,7 @@ def main() -> None:
         rows.append((near_label, evaluate(mesh_samples, v, t, seen_near, thresholds_m=thresholds)))
     rows.extend(band_rows)
     errors = distance_to_mesh(fused.vertices, v, t)
+    support_rows = one_map_support(dense, views, errors, options.mesh_min_images)
     eval_s = time.perf_counter() - start
 
     depth_report = report["depth_maps"]
@@ -285,6 +296,8 @@ def main() -> None:
         )
         print(f"{label:32s}{cells}")
     print()
+    for line in support_rows:
+        print(line)
     timings = report["timings"]
     n = report["images"]
     print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
@@ -304,6 +317,37 @@ def main() -> None:
     five = rows[0][1][1]
     goal = five.accuracy >= 0.9 and five.completeness >= 0.7
     print(f"goal at 5 cm (accuracy >= 90 %, completeness >= 70 %): {'met' if goal else 'NOT met'}")
+
+
+def one_map_support(
+    dense: DenseFolder, views: list[PinholeView], errors: np.ndarray, min_images: int
+) -> list[str]:
+    """Lines on the fused points of fewer than `min_images` images (left out of the mesh
+    by default): how many there are at each stereo pair support, and how many of them lie
+    within 5 cm of the truth (the evidence behind `mesh_single_image_min_pairs`)."""
+    from postproc.dense.colmap_io import read_fusion_visibility
+    from postproc.dense.stage import pair_support
+
+    visible = read_fusion_visibility(dense.fused_visibility)
+    weak = np.flatnonzero([len(x) < min_images for x in visible])
+    if not len(weak):
+        return []
+    fused = read_ply(dense.fused)
+    support = pair_support(
+        fused.vertices[weak], [visible[i] for i in weak], DenseWorkspace(dense.workspace), views
+    )
+    lines = [
+        f"points of fewer than {min_images} depth maps: {len(weak)} of {len(visible)} "
+        f"({100 * len(weak) / len(visible):.0f} %); by the stereo pairs agreeing at the pixel:"
+    ]
+    for level in range(int(support.max()) + 1):
+        at = support == level
+        if at.any():
+            within = np.mean(errors[weak[at]] < 0.05)
+            lines.append(
+                f"  {level} pairs: {int(at.sum())} points, {100 * within:.1f} % within 5 cm"
+            )
+    return lines
 
 
 if __name__ == "__main__":

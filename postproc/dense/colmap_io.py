@@ -91,7 +91,9 @@ class DenseWorkspace:
 
     root/images/<name> (undistorted images), root/sparse/ (PINHOLE model),
     root/stereo/{depth_maps,normal_maps}/<name>.<kind>.bin with kind "geometric" or
-    "photometric", root/stereo/fusion.cfg (images to fuse, one name a line).
+    "photometric", root/stereo/fusion.cfg (images to fuse, one name a line); ours beside
+    them: root/stereo/support_maps/<name>.pairs.bin (the CPU stereo's count of agreeing
+    pairs per pixel, same format).
     """
 
     root: Path
@@ -113,6 +115,9 @@ class DenseWorkspace:
 
     def normal_map_path(self, image_name: str, kind: str = "geometric") -> Path:
         return self.stereo_dir / "normal_maps" / f"{image_name}.{kind}.bin"
+
+    def support_map_path(self, image_name: str) -> Path:
+        return self.stereo_dir / "support_maps" / f"{image_name}.pairs.bin"
 
     def is_undistorted(self) -> bool:
         """True when the undistorter finished here (model, images and fusion.cfg present)."""

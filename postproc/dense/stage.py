@@ -186,7 +186,8 @@ class ViewJob:
 
 def compute_view_maps(job: ViewJob) -> dict[str, Any]:
     """Write one reference image's geometric depth and normal maps into the workspace
-    (atomically, normals first: a depth map on disk means its normal map is there too);
+    (atomically, normals and the pair support first: a depth map on disk means the
+    others are there too);
     skips an image whose maps exist (a rerun after a worker died, or a resumed stage).
 
     Returns {"name", "computed", "seconds", "worker" (host:pid), "sources"}.
@@ -196,7 +197,7 @@ def compute_view_maps(job: ViewJob) -> dict[str, Any]:
 
     import cv2
 
-    from postproc.dense.stereo_cpu import StereoView, depth_map
+    from postproc.dense.stereo_cpu import StereoView, depth_support_map
 
     workspace = DenseWorkspace(Path(job.workspace_dir))
     worker = f"{socket.gethostname()}:{os.getpid()}"
@@ -220,7 +221,7 @@ def compute_view_maps(job: ViewJob) -> dict[str, Any]:
             raise InputError(f"{path}: cannot read the undistorted image")
         image = np.asarray(pixels, dtype=np.uint8)  # IMREAD_GRAYSCALE: 8 bits already
         stereo_views.append(StereoView(image=image, K=K, cam_from_world=pose))
-    depth, normals = depth_map(
+    depth, normals, support = depth_support_map(
         stereo_views[0],
         stereo_views[1:],
         job.depth_range_m,
@@ -228,6 +229,7 @@ def compute_view_maps(job: ViewJob) -> dict[str, Any]:
         points_ref_cam=job.points_cam_m,
     )
     write_array(workspace.normal_map_path(job.name), normals, overwrite=True)
+    write_array(workspace.support_map_path(job.name), support, overwrite=True)
     write_array(workspace.depth_map_path(job.name), depth, overwrite=True)
     result["computed"] = True
     result["seconds"] = time.perf_counter() - start
@@ -498,7 +500,10 @@ def _build(
                 min_images=options.mesh_min_images,
                 min_neighbours=options.mesh_single_image_neighbours,
                 radius_m=options.mesh_single_image_radius_m,
+                min_pairs=options.mesh_single_image_min_pairs,
+                workspace=workspace, views=views,
             )  # fmt: skip
+            report["mesh_input_points"] = len(read_ply(mesh_input).vertices)
         if not mesh_ply.exists():
             report["mesh"] = asdict(mesh(options.meshing, mesh_input, mesh_ply))
         timings["meshing_s"] = time.perf_counter() - start
@@ -533,31 +538,46 @@ def supported_points(
     min_images: int,
     min_neighbours: int = 0,
     radius_m: float = 0.05,
+    min_pairs: int = 0,
+    workspace: DenseWorkspace | None = None,
+    views: list[PinholeView] | None = None,
 ) -> Path:
     """Write the points of `fused_ply` fused from at least `min_images` images (COLMAP's
     `.vis` beside the fused cloud, same point order) to `out_ply` (atomic, overwritten).
 
-    With `min_neighbours` > 0 a point seen in fewer images is kept too when at least
-    `min_neighbours` other fused points lie within `radius_m` (m) of it: a patch of one
-    depth map is surface, a stray depth is alone."""
+    A point seen in fewer images is kept too when either rule keeps it:
+    - `min_neighbours` > 0: at least `min_neighbours` other fused points lie within
+      `radius_m` (m) of it (a patch of one depth map is surface, a stray depth is alone);
+    - `min_pairs` > 0: in each depth map it came from, at least `min_pairs` stereo pairs
+      agreed on the depth at its pixel (the CPU stereo's support maps in `workspace`;
+      `views` in the workspace's image order, as `.vis` indexes them), so `min_pairs` + 1
+      images matched it. A map without support (PatchMatch) keeps nothing by this rule."""
     from postproc.dense.colmap_io import read_fusion_visibility
     from shared.formats.ply import PlyData, read_ply, write_ply
 
     cloud = read_ply(fused_ply)
-    keep = np.array([len(v) >= min_images for v in read_fusion_visibility(visibility)], bool)
+    visible = read_fusion_visibility(visibility)
+    keep = np.array([len(v) >= min_images for v in visible], bool)
     if len(keep) != len(cloud.vertices):
         raise InputError(
             f"{visibility}: {len(keep)} points, but {fused_ply} has {len(cloud.vertices)}"
         )
-    if min_neighbours > 0 and not keep.all():
+    weak = np.flatnonzero(~keep)
+    extra = np.zeros(len(keep), bool)
+    if min_neighbours > 0 and len(weak):
         from scipy.spatial import cKDTree
 
-        weak = np.flatnonzero(~keep)
         # return_length counts the point itself.
         counts = cKDTree(cloud.vertices).query_ball_point(
             cloud.vertices[weak], radius_m, return_length=True
         )
-        keep[weak[np.asarray(counts) - 1 >= min_neighbours]] = True
+        extra[weak[np.asarray(counts) - 1 >= min_neighbours]] = True
+    if min_pairs > 0 and len(weak):
+        if workspace is None or views is None:
+            raise ValueError("the pair-support rule needs the workspace and its views")
+        support = pair_support(cloud.vertices[weak], [visible[i] for i in weak], workspace, views)
+        extra[weak] |= support >= min_pairs
+    keep |= extra
     if not keep.any():
         raise StageError(f"{fused_ply}: no point was fused from {min_images} or more images")
     kept = PlyData(
@@ -566,6 +586,47 @@ def supported_points(
         colors=None if cloud.colors is None else cloud.colors[keep],
     )
     return write_ply(out_ply, kept, overwrite=True)
+
+
+def pair_support(
+    points_m: npt.NDArray[np.float64],
+    visible: list[npt.NDArray[np.uint32]],
+    workspace: DenseWorkspace,
+    views: list[PinholeView],
+) -> npt.NDArray[np.int64]:
+    """For each point (world, m) and the images it was fused from: the fewest stereo pairs
+    that agreed on its depth in any of those images' support maps, read at the point's
+    projection (the most of the 3x3 pixels around it: a fused point averages pixels); 0
+    when an image has no support map or the point falls outside it."""
+    import cv2
+
+    points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    result = np.full(len(points), np.iinfo(np.int64).max, np.int64)
+    result[[len(v) == 0 for v in visible]] = 0
+    by_image: dict[int, list[int]] = {}
+    for i, images in enumerate(visible):
+        for k in images:
+            by_image.setdefault(int(k), []).append(i)
+    for k, members in by_image.items():
+        index = np.asarray(members)
+        view = views[k]
+        path = workspace.support_map_path(view.name)
+        if not path.is_file():
+            result[index] = 0
+            continue
+        grown = cv2.dilate(read_array(path), np.ones((3, 3), np.uint8))
+        cam = points[index] @ view.cam_from_world[:3, :3].T + view.cam_from_world[:3, 3]
+        z = np.where(cam[:, 2] > 0, cam[:, 2], np.nan)
+        with np.errstate(invalid="ignore"):
+            u = np.floor(view.K[0, 0] * cam[:, 0] / z + view.K[0, 2])
+            v = np.floor(view.K[1, 1] * cam[:, 1] / z + view.K[1, 2])
+        height, width = grown.shape
+        inside = np.isfinite(u) & np.isfinite(v)
+        inside &= (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        pairs = np.zeros(len(index), np.int64)
+        pairs[inside] = grown[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+        result[index] = np.minimum(result[index], pairs)
+    return result
 
 
 def read_depth_map(workspace_dir: Path, image_name: str) -> npt.NDArray[np.float32]:

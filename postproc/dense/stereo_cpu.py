@@ -206,6 +206,16 @@ def pair_depth(
 def consistent_depth(pair_depths: list[F32], options: CpuStereoOptions | None = None) -> F32:
     """Combine per-pair depth maps: the mean of the depths within `consistency_rel` of the
     per-pixel median, where at least `min_consistent` of them agree (else 0)."""
+    return consistent_depth_support(pair_depths, options)[0]
+
+
+def consistent_depth_support(
+    pair_depths: list[F32], options: CpuStereoOptions | None = None
+) -> tuple[F32, npt.NDArray[np.uint8]]:
+    """`consistent_depth` and, per pixel, its support: how many pairs agree on the depth
+    kept within `support_tolerance_m` (and `consistency_rel`), 0 where none is kept. A
+    pixel two pairs support was matched in three images to that tolerance; far pixels,
+    whose pairs agree only to a fraction of a large depth, get less support."""
     options = options or CpuStereoOptions()
     if not pair_depths:
         raise ValueError("no depth maps to combine")
@@ -217,8 +227,13 @@ def consistent_depth(pair_depths: list[F32], options: CpuStereoOptions | None = 
         agree = np.abs(stack - median) <= options.consistency_rel * median
         count = agree.sum(axis=0)
         total = np.where(agree, stack, 0.0).sum(axis=0)
-        depth = np.where(count >= need, total / np.maximum(count, 1), 0.0)
-    return np.nan_to_num(depth, nan=0.0).astype(np.float32)
+        kept = count >= need
+        depth = np.where(kept, total / np.maximum(count, 1), 0.0)
+        close = agree & (np.abs(stack - depth) <= options.support_tolerance_m)
+        support_count = close.sum(axis=0)
+    depth = np.nan_to_num(depth, nan=0.0).astype(np.float32)
+    support = np.where(kept & (depth > 0), np.minimum(support_count, 255), 0).astype(np.uint8)
+    return depth, support
 
 
 def nan_median_first_axis(stack: F32) -> F32:
@@ -277,15 +292,37 @@ def depth_map(
 
     Pixels with no consistent depth are 0 in both; where a normal cannot be formed the
     depth is dropped too (COLMAP's fusion needs both)."""
+    depth, normals, _ = depth_support_map(
+        ref, sources, depth_range_m, options, points_ref_cam=points_ref_cam
+    )
+    return depth, normals
+
+
+def depth_support_map(
+    ref: StereoView,
+    sources: list[StereoView],
+    depth_range_m: tuple[float, float],
+    options: CpuStereoOptions | None = None,
+    *,
+    points_ref_cam: FloatArray | None = None,
+) -> tuple[F32, F32, npt.NDArray[np.uint8]]:
+    """`depth_map` and its support (H, W): the stereo pairs that agreed on each pixel's
+    depth (0 where the depth is 0)."""
     options = options or CpuStereoOptions()
     height, width = ref.image.shape[:2]
     if not sources:
-        return np.zeros((height, width), np.float32), np.zeros((height, width, 3), np.float32)
+        return (
+            np.zeros((height, width), np.float32),
+            np.zeros((height, width, 3), np.float32),
+            np.zeros((height, width), np.uint8),
+        )
     pairs = [
         pair_depth(ref, src, depth_range_m, options, points_ref_cam=points_ref_cam)
         for src in sources
     ]
-    depth = consistent_depth(pairs, options)
+    depth, support = consistent_depth_support(pairs, options)
     normals = normals_from_depth(depth, ref.K, step_px=options.normal_step_px)
-    depth[~np.any(normals != 0, axis=2)] = 0.0
-    return depth, normals
+    no_normal = ~np.any(normals != 0, axis=2)
+    depth[no_normal] = 0.0
+    support[no_normal] = 0
+    return depth, normals, support

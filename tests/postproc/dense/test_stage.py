@@ -356,3 +356,54 @@ def test_mesh_input_keeps_dense_patches_of_one_depth_map(tmp_path: Path) -> None
     )
     # Asking for more neighbours than the corners have drops them.
     assert len(kept(min_neighbours=4, radius_m=0.015)) == len(patch) - 4 + 1
+
+
+def test_mesh_input_keeps_points_of_one_map_that_pairs_support(tmp_path: Path) -> None:
+    from postproc.dense.colmap_io import PinholeView, write_array
+    from postproc.dense.stage import supported_points
+    from shared.formats.ply import PlyData, write_ply
+
+    # Two 20x10 px views looking down +z from the origin and from x = 1 m; four points at
+    # 2 m, each of one map: pixel (5, 5) and (15, 5) of view 0, (5, 5) of view 1, and one
+    # behind view 1's support map (no map: nothing kept by the rule).
+    K = np.array([[10.0, 0.0, 10.0], [0.0, 10.0, 5.0], [0.0, 0.0, 1.0]])
+    pose1 = np.eye(4)
+    pose1[0, 3] = -1.0  # T_C_W of a camera at x = 1 m
+    views = [
+        PinholeView(name="a.png", K=K, width=20, height=10, cam_from_world=np.eye(4),
+                    points_m=np.zeros((0, 3))),
+        PinholeView(name="b.png", K=K, width=20, height=10, cam_from_world=pose1,
+                    points_m=np.zeros((0, 3))),
+        PinholeView(name="c.png", K=K, width=20, height=10, cam_from_world=np.eye(4),
+                    points_m=np.zeros((0, 3))),
+    ]  # fmt: skip
+    pixels = [(0, 5.5, 5.5), (0, 15.5, 5.5), (1, 5.5, 5.5), (2, 5.5, 5.5)]
+    points = []
+    for k, u, v in pixels:
+        cam = np.array([(u - 10.0) / 10.0 * 2.0, (v - 5.0) / 10.0 * 2.0, 2.0])
+        pose = views[k].cam_from_world
+        points.append(pose[:3, :3].T @ (cam - pose[:3, 3]))
+    write_ply(tmp_path / "fused.ply", PlyData(vertices=np.array(points)))
+    values = [x for k, _, _ in pixels for x in (1, k)]
+    vis = tmp_path / "fused.ply.vis"
+    vis.write_bytes(np.uint64(len(points)).tobytes() + np.array(values, "<u4").tobytes())
+    workspace = DenseWorkspace(tmp_path / "ws")
+    support_a = np.zeros((10, 20), np.float32)
+    support_a[:, :10] = 3  # left half: three pairs agree; right half: one
+    support_a[:, 10:] = 1
+    write_array(workspace.support_map_path("a.png"), support_a)
+    write_array(workspace.support_map_path("b.png"), np.full((10, 20), 2, np.float32))
+
+    def kept(min_pairs: int) -> npt.NDArray[np.float64]:
+        out = supported_points(
+            tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=1 + 1,
+            min_pairs=min_pairs, workspace=workspace, views=views,
+        )  # fmt: skip
+        return read_ply(out).vertices
+
+    np.testing.assert_allclose(kept(3), np.array(points)[[0]])
+    np.testing.assert_allclose(kept(2), np.array(points)[[0, 2]])
+    np.testing.assert_allclose(kept(1), np.array(points)[[0, 1, 2]])
+    with pytest.raises(ValueError, match="needs the workspace"):
+        supported_points(tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2,
+                         min_pairs=2)  # fmt: skip
