@@ -4,7 +4,8 @@
         [--keyframe-step 0.25] [--max-image-size 960] [--backend auto] [--keep DIR]
         [--no-view-selection] [--min-baseline-rel 0.3] [--min-rotation-deg 20]
         [--project-keyframes 5000] [--max-neighbours 4] [--far-neighbours 2]
-        [--single-image-neighbours 0 --single-image-radius 0.05] [--single-image-min-pairs 0]
+        [--single-image-neighbours 0 --single-image-radius 0.05] [--single-image-min-pairs 3]
+        [--support-tolerance 0.02]
 
 Simulates session 0 of the survey (`sim.survey`: diver route along the starboard
 hull, underwater image model with noise), picks keyframes every `--keyframe-step` metres
@@ -49,6 +50,7 @@ from postproc.dense.colmap_io import (
 from postproc.dense.evaluate import distance_to_mesh, evaluate, sample_surface, visibility
 from postproc.dense.fusion import FusionOptions
 from postproc.dense.stage import DenseOptions, run
+from postproc.dense.stereo_cpu import CpuStereoOptions
 from postproc.dense.views import NeighbourOptions, ViewSelectionOptions
 from shared.calibration.cameras import PinholeRadtan
 from shared.folders import DenseFolder, SfmFolder
@@ -148,6 +150,9 @@ def main() -> None:
     parser.add_argument("--single-image-radius", type=float,
                         default=DenseOptions().mesh_single_image_radius_m,
                         help="mesh: radius of that neighbour count, metres")  # fmt: skip
+    parser.add_argument("--support-tolerance", type=float,
+                        default=CpuStereoOptions().support_tolerance_m,
+                        help="stereo: pair agreement that supports a depth, m")  # fmt: skip
     parser.add_argument("--single-image-min-pairs", type=int,
                         default=DenseOptions().mesh_single_image_min_pairs,
                         help="mesh: keep a point of one depth map where this many of its "
@@ -203,6 +208,7 @@ def main() -> None:
     options.fusion = FusionOptions(
         min_num_pixels=args.min_num_pixels, max_depth_error_rel=args.max_depth_error
     )
+    options.stereo.support_tolerance_m = args.support_tolerance
     options.neighbours = NeighbourOptions(
         max_neighbours=args.max_neighbours, far_neighbours=args.far_neighbours
     )
