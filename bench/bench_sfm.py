@@ -126,6 +126,10 @@ def survey(work: Path, keyframes: int, sessions_n: int = 2) -> list[SlamLikeSess
     if cache.exists():
         with cache.open("rb") as f:
             sessions: list[SlamLikeSession] = pickle.load(f)  # our own file, written below
+        # The session folders sit beside the pickle; an older run may have stored them
+        # relative to its working folder, which the merge's paths cannot resolve.
+        for s in sessions:
+            s.folder = root / s.folder.name
         return sessions
     start = time.perf_counter()
     sessions = write_slam_like_survey(
