@@ -146,8 +146,8 @@ class RefineOptions:
         The whole refinement (CPU, loaded machine) took 18 against 44 s there (3 rounds
         against 4) and 122 against 288 s on the whole 10 minutes (3 against 6), sim3 ATE
         0.75 / 0.88 against 0.75 / 0.84 cm, without alignment 29.9 / 41.5 against
-        29.9 / 57.2 cm. Dogleg needs a direct solver, so adjustments above `ba_max_direct_sparse_images`
-        keyframes use Levenberg-Marquardt.
+        29.9 / 57.2 cm. Dogleg needs a direct solver, so adjustments above
+        `ba_max_direct_sparse_images` keyframes use Levenberg-Marquardt.
     ba_max_direct_sparse_images: up to this many keyframes the adjustment factorises the
         reduced camera system directly (Ceres sparse Schur); beyond, it iterates (Schur +
         conjugate gradients). COLMAP switches at 1000 images, a limit set for unordered
