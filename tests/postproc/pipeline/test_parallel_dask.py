@@ -45,8 +45,9 @@ def _dense_fixtures() -> Any:
 
 
 def dense_outputs(root: Path) -> dict[str, bytes]:
-    """The dense stage's data files (depth and normal maps, fused cloud and visibility),
-    by path relative to the project output; dense.json holds timings and is left out."""
+    """The dense stage's data files (depth, normal and support maps, fused cloud and
+    visibility), by path relative to the project output; dense.json holds timings and is
+    left out."""
     dense = root / "dense"
     files = [dense / "fused.ply", dense / "fused.ply.vis"]
     files += sorted((dense / "workspace" / "stereo").rglob("*.bin"))
@@ -75,7 +76,7 @@ def test_dense_images_spread_over_two_dask_workers(
     local = load_project(project_file)
     assert run_project(local, stages=stages).exit_code() == 0
     expected = dense_outputs(local.output)
-    assert len(expected) == 2 + 2 * 7
+    assert len(expected) == 2 + 3 * 7
     local_report = json.loads((local.output / "dense" / "dense.json").read_text())
     assert len(local_report["depth_maps"]["workers"]) == 1
 
