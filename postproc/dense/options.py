@@ -214,11 +214,13 @@ class DenseOptions:
         point when, at its pixel, at least this many of its depth map's stereo pairs
         agreed on the depth within `CpuStereoOptions.support_tolerance_m` (so that many + 1
         images matched it; CPU stereo only; 0: off). Measured (`bench_dense.py`, 40 s at
-        960x540, 31 of 56 depth maps): of the points of one depth map, those 3 pairs
-        support lie within 5 cm of the truth 99.6 % of the time (2 pairs: 96.6 %, 1: 72.8
-        %); the mesh went from 99.5 / 60.4 % (accuracy / completeness at 5 cm) to 98.8 /
-        63.3 % with 3, and to 91.9 / 70.4 % with 2 (sparse far points of one map spread
-        Poisson surface), so 3.
+        960x540, true poses, 31 of 56 depth maps): of the points of one depth map, those 3
+        pairs support lie within 5 cm of the truth 99.6 % of the time (2 pairs: 96.6 %, 1:
+        72.8 %); the mesh (accuracy / completeness at 5 cm) went from 99.5 / 60.4 % to
+        99.4 / 61.4 % with 4, 98.8 / 63.3 % with 3 and 91.9 / 70.4 % with 2. On
+        bench_pipeline's 2-minute dive (SfM poses) the same mesh was 95.9 / 62.7 % without
+        the rule, 95.9 / 63.2 % with 4 and 93.4 / 64.7 % with 3: sparse far points of one
+        map spread Poisson surface, so 4 (every pair of the default 3 + 1).
     """
 
     max_image_size_px: int = 960
@@ -236,4 +238,4 @@ class DenseOptions:
     mesh_min_images: int = 2
     mesh_single_image_neighbours: int = 0
     mesh_single_image_radius_m: float = 0.05
-    mesh_single_image_min_pairs: int = 3
+    mesh_single_image_min_pairs: int = 4
