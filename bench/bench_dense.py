@@ -282,7 +282,7 @@ def main() -> None:
         rows.append((near_label, evaluate(mesh_samples, v, t, seen_near, thresholds_m=thresholds)))
     rows.extend(band_rows)
     errors = distance_to_mesh(fused.vertices, v, t)
-    support_rows = one_map_support(dense, views, errors, options.mesh_min_images)
+    support_rows = one_map_support(dense, fused.vertices, views, errors, options.mesh_min_images)
     eval_s = time.perf_counter() - start
 
     depth_report = report["depth_maps"]
@@ -326,11 +326,17 @@ def main() -> None:
 
 
 def one_map_support(
-    dense: DenseFolder, views: list[PinholeView], errors: np.ndarray, min_images: int
+    dense: DenseFolder,
+    fused_m: np.ndarray,
+    views: list[PinholeView],
+    errors: np.ndarray,
+    min_images: int,
 ) -> list[str]:
     """Lines on the fused points of fewer than `min_images` images (left out of the mesh
     by default): how many there are at each stereo pair support, and how many of them lie
-    within 5 cm of the truth (the evidence behind `mesh_single_image_min_pairs`)."""
+    within 5 cm of the truth (the evidence behind `mesh_single_image_min_pairs`).
+    fused_m: the fused points (`dense.fused`'s vertices); errors: their distances to
+    the truth (m)."""
     from postproc.dense.colmap_io import read_fusion_visibility
     from postproc.dense.stage import pair_support
 
@@ -338,9 +344,8 @@ def one_map_support(
     weak = np.flatnonzero([len(x) < min_images for x in visible])
     if not len(weak):
         return []
-    fused = read_ply(dense.fused)
     support = pair_support(
-        fused.vertices[weak], [visible[i] for i in weak], DenseWorkspace(dense.workspace), views
+        fused_m[weak], [visible[i] for i in weak], DenseWorkspace(dense.workspace), views
     )
     lines = [
         f"points of fewer than {min_images} depth maps: {len(weak)} of {len(visible)} "

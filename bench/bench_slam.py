@@ -362,14 +362,18 @@ def speed(work: Path, *, duration_s: float, seed: int, inputs: list[str]) -> Non
 
 def _import_rendered(video: Path, calib: Path, session: Path) -> Path:
     """The rendered MP4 as a session folder (`gopro import` with the render's calibration)."""
+    calibration = ["--camchain", str(calib / "camchain.yaml")]
+    return _gopro_import(video, session, [*calibration, "--imu-yaml", str(calib / "imu.yaml")])
+
+
+def _gopro_import(video: Path, session: Path, options: list[str]) -> Path:
+    """`wreckmap-field gopro import VIDEO --out SESSION OPTIONS...` unless it is done."""
     if SessionFolder(session).recording.is_file():
         return session
     env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
     command = [sys.executable, "-m", "field.cli", "gopro", "import", str(video)]
-    calibration = ["--camchain", str(calib / "camchain.yaml")]
-    calibration += ["--imu-yaml", str(calib / "imu.yaml")]
     done = subprocess.run(
-        [*command, "--out", str(session), *calibration],
+        [*command, "--out", str(session), *options],
         cwd=REPO,
         env=env,
         capture_output=True,
@@ -427,21 +431,7 @@ def real_recordings(shared: Path) -> list[RealRecording]:
 
 def _import_gopro(video: Path, work: Path) -> Path:
     """Import a GoPro clip with the field CLI (both samples were filmed in air)."""
-    session = work / f"session_{video.stem}"
-    if SessionFolder(session).recording.is_file():
-        return session
-    env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
-    command = [sys.executable, "-m", "field.cli", "gopro", "import", str(video)]
-    done = subprocess.run(
-        [*command, "--out", str(session), "--medium", "air"],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-    )
-    if done.returncode != 0:
-        raise RuntimeError(f"gopro import failed: {done.stderr.strip().splitlines()[-1:]}")
-    return session
+    return _gopro_import(video, work / f"session_{video.stem}", ["--medium", "air"])
 
 
 def colmap_keyframe_poses(slam_dir: Path, work: Path) -> tuple[list[dict[int, FloatArray]], int]:

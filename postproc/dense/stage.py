@@ -503,7 +503,6 @@ def _build(
                 min_pairs=options.mesh_single_image_min_pairs,
                 workspace=workspace, views=views,
             )  # fmt: skip
-            report["mesh_input_points"] = len(read_ply(mesh_input).vertices)
         if not mesh_ply.exists():
             report["mesh"] = asdict(mesh(options.meshing, mesh_input, mesh_ply))
         timings["meshing_s"] = time.perf_counter() - start

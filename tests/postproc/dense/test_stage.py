@@ -396,7 +396,7 @@ def test_mesh_input_keeps_points_of_one_map_that_pairs_support(tmp_path: Path) -
 
     def kept(min_pairs: int) -> npt.NDArray[np.float64]:
         out = supported_points(
-            tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=1 + 1,
+            tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2,
             min_pairs=min_pairs, workspace=workspace, views=views,
         )  # fmt: skip
         return read_ply(out).vertices
