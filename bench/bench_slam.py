@@ -8,11 +8,14 @@ Usage:
     .venv/bin/python bench/bench_slam.py --real [--only handheld_a karma ...] [--width PX]
     .venv/bin/python bench/bench_slam.py --speed [--duration 40] [--seed 1]
                                          [--speed-inputs euroc h264]
+                                         [--estimator-process auto|on|off]
 
 `--speed`: the stage at its defaults on one rendered 960x540, 30 fps session, from its
 EuRoC copy (PNG) and from its MP4 imported as a session folder (H.264); prints the
 real-time factor per wall second and per CPU second (load average beside it), the ATE
-and the CPU seconds of each of the stage's threads (decode, frontend, estimator).
+and the CPU seconds of each of the stage's threads (decode, frontend, estimator; with
+the estimator in a second process also its start, the hand-over thread "main" and the
+answers' thread "estimator-link"). `--estimator-process` sets `SlamOptions.estimator_process`.
 
 `--long`: a 45-minute feature-level dive (the diver sweeps the 40 m wreck side
 back and forth, so features never run out); prints the process RSS and the
@@ -296,7 +299,14 @@ def rendered(
             )
 
 
-def speed(work: Path, *, duration_s: float, seed: int, inputs: list[str]) -> None:
+def speed(
+    work: Path,
+    *,
+    duration_s: float,
+    seed: int,
+    inputs: list[str],
+    estimator_process: Literal["auto", "on", "off"] = "auto",
+) -> None:
     """Real-time factor of the stage at its defaults on one rendered 960x540, 30 fps
     session (the size and rate of issue #23), from its EuRoC copy (PNG images) and from
     its GoPro-like MP4 imported as a session folder (H.264): video seconds per wall
@@ -335,7 +345,7 @@ def speed(work: Path, *, duration_s: float, seed: int, inputs: list[str]) -> Non
             # EuRoC copy's (the same images, in the same order).
             clock_ns = _first_frame_ns(euroc) - _first_frame_ns(recording)
         out = work / f"slam_{survey.name}_speed_{kind}"
-        run_slam(SlamOptions(), recording, out, overwrite=True)
+        run_slam(SlamOptions(estimator_process=estimator_process), recording, out, overwrite=True)
         stats = SlamFolder(out).read_stats()
         estimate = SlamFolder(out).read_trajectory()
         # Ground truth is on the IMU clock; the trajectory on the camera clock.
@@ -344,7 +354,8 @@ def speed(work: Path, *, duration_s: float, seed: int, inputs: list[str]) -> Non
         label = "EuRoC (PNG)" if kind == "euroc" else "session (H.264)"
         print(
             f"-- speed, {label}: 960x540 @ 30 fps, {stats['sequence_duration_s']:.1f} s of "
-            f"video, frontend {stats['frontend_width_px']} px, {os.cpu_count()} CPUs\n"
+            f"video, frontend {stats['frontend_width_px']} px, {os.cpu_count()} CPUs, "
+            f"estimator {'apart' if stats.get('estimator_process') else 'in-process'}\n"
             f"   wall {stats['run_time_s']:.1f} s (RTF {stats['real_time_factor']:.2f}), "
             f"CPU {stats['cpu_time_s']:.1f} s (RTF per CPU second "
             f"{stats['real_time_factor_cpu']:.2f}), load average "
@@ -708,6 +719,12 @@ def main() -> None:
         help="with --speed: the EuRoC copy (PNG), the imported MP4 (H.264) or both",
     )
     parser.add_argument(
+        "--estimator-process",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="with --speed: the estimator in a second process, in-process, or as the stage picks",
+    )
+    parser.add_argument(
         "--only", nargs="*", help="with --real: these recordings (handheld_a, karma, ...)"
     )
     parser.add_argument("--long-minutes", type=float, default=45.0)
@@ -719,7 +736,13 @@ def main() -> None:
         return
     if args.speed:
         args.work.mkdir(parents=True, exist_ok=True)
-        speed(args.work, duration_s=args.duration, seed=args.seed, inputs=args.speed_inputs)
+        speed(
+            args.work,
+            duration_s=args.duration,
+            seed=args.seed,
+            inputs=args.speed_inputs,
+            estimator_process=args.estimator_process,
+        )
         return
     if args.real:
         width = args.width if "--width" in sys.argv else None

@@ -379,6 +379,11 @@ class SlamOptions:
         metric when the IMU can weigh it, by postproc.slam.stabilised; stats.json
         says which ("gyro_check", "mode", "metric_scale"). An explicit `camchain`
         turns "auto" off.
+    estimator_process: run the estimator (keyframe rule, smoother, loop closure) in a
+        second process ("on"), in the frontend's ("off"), or "auto": a second process
+        from 300 images on when two cores are free (postproc.slam.estimator_process).
+        Sharing a process, the estimator and the frontend's threads take turns for
+        Python's GIL; apart they run side by side. Same result either way.
     """
 
     frontend: FrontendOptions = field(default_factory=FrontendOptions)
@@ -390,3 +395,4 @@ class SlamOptions:
     max_speed_m_s: float | None = 10.0
     gyro_check: Literal["auto", "on", "off"] = "auto"
     gyro_check_options: GyroCheckOptions = field(default_factory=GyroCheckOptions)
+    estimator_process: Literal["auto", "on", "off"] = "auto"

@@ -33,7 +33,8 @@ the images alone, gravity-aligned by the IMU (postproc.slam.stabilised).
 stats.json reports the check ("gyro_check*", "camera_imu_rigid", "mode").
 
 Images are decoded one thread ahead and tracked one more thread ahead of the
-estimator (`prefetch`, `BiasBoard`). A trajectory whose
+estimator (`prefetch`, `BiasBoard`), which runs in a second process on long inputs
+(`SlamOptions.estimator_process`, postproc.slam.estimator_process). A trajectory whose
 keyframes move faster than `SlamOptions.max_speed_m_s` has diverged and is
 refused with a StageError rather than written.
 
@@ -59,7 +60,14 @@ from typing import Any, TypeVar
 import cv2
 import numpy as np
 
-from postproc.slam.estimator import SlamEstimator, SlamResult
+from postproc.slam.estimator import SlamResult
+from postproc.slam.estimator_process import (
+    EstimatorProcess,
+    EstimatorRunner,
+    EstimatorSetup,
+    InProcessEstimator,
+    use_a_process,
+)
 from postproc.slam.frontend import FrontendOptions, Image, KltFrontend
 from postproc.slam.gyro_check import (
     GyroCheck,
@@ -69,11 +77,9 @@ from postproc.slam.gyro_check import (
 )
 from postproc.slam.initialization import gyro_rotation
 from postproc.slam.inputs import Frame, SlamInput, open_input
-from postproc.slam.loop_closure import Descriptors, orb_descriptors
 from postproc.slam.options import SlamOptions as SlamOptions
 from postproc.slam.stabilised import gravity_and_scale
 from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
-from postproc.slam.visual_only import VisualOnlyEstimator
 from shared.calibration.kalibr import (
     CameraCalibration,
     ImuNoise,
@@ -130,17 +136,6 @@ def _gyro_rotation(
     R_B_C = calibration.imu_from_cam[:3, :3]
     rotation: FloatArray = R_B_C.T @ R_prev_now.T @ R_B_C
     return rotation
-
-
-def _gyro_bias(estimator: SlamEstimator | VisualOnlyEstimator) -> FloatArray | None:
-    """The gyro bias (rad/s) of the estimator's last keyframe (zero before the start; None
-    without an IMU): what the frontend's rotation seeds use."""
-    if not isinstance(estimator, SlamEstimator):
-        return None
-    backend = estimator.backend
-    if not backend.num_keyframes:
-        return np.zeros(3)
-    return np.asarray(backend.bias_of(backend.num_keyframes - 1).gyroscope(), dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -345,23 +340,19 @@ def _build(
                 check.reason,
             )
     frontend = KltFrontend(options.frontend, calibration.camera)
-    estimator_options = dataclasses.replace(
-        options.estimator, timeshift_cam_imu_s=calibration.timeshift_cam_imu_s
-    )
-    estimator: SlamEstimator | VisualOnlyEstimator
-    if options.use_imu and not stabilised:
+    inertial = options.use_imu and not stabilised
+    if inertial:
         assert noise is not None  # _resolve_calibration raised otherwise
-        estimator = SlamEstimator(
-            estimator_options,
-            focal_px=frontend.focal_px,
-            imu_from_cam=calibration.imu_from_cam,
-            imu=source.imu,
-            imu_noise=noise,
-        )
-    else:
-        estimator = VisualOnlyEstimator(
-            estimator_options, focal_px=frontend.focal_px, imu_from_cam=calibration.imu_from_cam
-        )
+    setup = EstimatorSetup(
+        options=dataclasses.replace(
+            options.estimator, timeshift_cam_imu_s=calibration.timeshift_cam_imu_s
+        ),
+        focal_px=frontend.focal_px,
+        imu_from_cam=calibration.imu_from_cam,
+        imu=source.imu if inertial else None,
+        imu_noise=noise if inertial else None,
+        image_shape=(frontend.image_size[1], frontend.image_size[0]),
+    )
     started = time.monotonic()
     started_cpu = time.process_time()
     keyframe_dir = folder.keyframes
@@ -369,6 +360,7 @@ def _build(
     total = source.frame_count
     if options.max_frames is not None:
         total = min(total, options.max_frames)
+    in_a_process = use_a_process(options.estimator_process, total)
     tracking_failures = 0
     coverage = (
         ImuCoverage.of(source.imu, ns_from_seconds(calibration.timeshift_cam_imu_s))
@@ -376,15 +368,16 @@ def _build(
         else None
     )
     # CPU seconds of each thread (stats.json "cpu_time_threads_s"): decoding and image
-    # preparation, tracking, and the estimator (this thread, from here to its result).
+    # preparation, tracking, and the estimator: in-process this thread, from here to
+    # its result; in a second process, the worker's start and estimation, this
+    # thread's hand-over ("main") and the thread that takes the answers ("estimator-link").
     thread_cpu_s: dict[str, float] = {}
-    estimator_cpu_start = time.thread_time()
-    biases = BiasBoard(_gyro_bias(estimator), lag=PIPELINE_LAG_FRAMES)
-    imu = source.imu if isinstance(estimator, SlamEstimator) else None
+    main_cpu_start = time.thread_time()
+    biases = BiasBoard(setup.initial_gyro_bias(), lag=PIPELINE_LAG_FRAMES)
     tracked = _track_frames(
         source.frames(),
         frontend,
-        imu=imu,
+        imu=setup.imu,
         calibration=calibration,
         biases=biases,
         max_frames=options.max_frames,
@@ -401,35 +394,48 @@ def _build(
     # of 960x540 video, 2 shared cores).
     opencv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
+    save = functools.partial(_save_keyframe, folder)
+    # With a second process the estimator runs beside the frontend's threads instead of
+    # taking turns with them for the GIL (postproc.slam.estimator_process).
+    runner: EstimatorRunner = (
+        EstimatorProcess(
+            setup, publish=biases.publish, on_keyframe=save, slots=PIPELINE_LAG_FRAMES + 4
+        )
+        if in_a_process
+        else InProcessEstimator(setup, publish=biases.publish, on_keyframe=save)
+    )
     try:
-        for sequence, item in enumerate(progress(stream, total=total, desc="slam", unit="frame")):
-            frame, tracks = item.frame, item.tracks
-            if len(tracks.track_ids) < options.min_tracks_ok:
-                tracking_failures += 1
-            if coverage is None or coverage.covers(frame.stamp_ns):
+        try:
+            for sequence, item in enumerate(
+                progress(stream, total=total, desc="slam", unit="frame")
+            ):
+                frame, tracks = item.frame, item.tracks
+                if len(tracks.track_ids) < options.min_tracks_ok:
+                    tracking_failures += 1
                 # (Outside the IMU's span an image is tracked, so the tracks run on, but
                 # not estimated.)
-                decision = estimator.process(
-                    tracks, functools.partial(_describe, item.image, tracks)
-                )
-                if decision.is_keyframe:
-                    _save_keyframe(folder, frame.stamp_ns, frame.image, frame.encoded_png)
-                first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
-                last_stamp = frame.stamp_ns
-            biases.publish(sequence, _gyro_bias(estimator))
+                estimate = coverage is None or coverage.covers(frame.stamp_ns)
+                runner.submit(sequence, frame, tracks if estimate else None, item.image)
+                if estimate:
+                    first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
+                    last_stamp = frame.stamp_ns
+        finally:
+            biases.close()
+            close = getattr(stream, "close", None)
+            if close is not None:
+                close()
+            cv2.setNumThreads(opencv_threads)
+        if coverage is not None:
+            coverage.warn(source.name)
+        try:
+            result = runner.finish()
+        except StageError as error:
+            raise StageError(f"{source.name}: {error}") from error
     finally:
-        biases.close()
-        close = getattr(stream, "close", None)
-        if close is not None:
-            close()
-        cv2.setNumThreads(opencv_threads)
-    if coverage is not None:
-        coverage.warn(source.name)
-    try:
-        result = estimator.finish()
-    except StageError as error:
-        raise StageError(f"{source.name}: {error}") from error
-    thread_cpu_s["slam-estimator"] = time.thread_time() - estimator_cpu_start
+        runner.close()
+    main_cpu_s = time.thread_time() - main_cpu_start
+    thread_cpu_s["slam-main" if in_a_process else "slam-estimator"] = main_cpu_s
+    thread_cpu_s.update(runner.cpu_seconds())
     if stabilised:
         result = gravity_and_scale(
             result,
@@ -454,7 +460,7 @@ def _build(
     if options.max_speed_m_s is not None and metric:  # VO scale is arbitrary
         _check_speed(result, options.max_speed_m_s, source.name)
     run_time_s = time.monotonic() - started
-    cpu_time_s = time.process_time() - started_cpu
+    cpu_time_s = time.process_time() - started_cpu + runner.worker_cpu_s
     duration_s = seconds_from_ns(last_stamp - (first_stamp or last_stamp))
     _write_result(
         folder,
@@ -466,9 +472,11 @@ def _build(
             "run_time_s": run_time_s,
             "sequence_duration_s": duration_s,
             "real_time_factor": duration_s / run_time_s if run_time_s > 0 else 0.0,
-            # CPU seconds of this process (all its threads): on a shared machine the
-            # wall-clock factor also measures the other load.
+            # CPU seconds of this process (all its threads) and of the estimator's
+            # process if it has one: on a shared machine the wall-clock factor also
+            # measures the other load.
             "cpu_time_s": cpu_time_s,
+            "estimator_process": in_a_process,
             "real_time_factor_cpu": duration_s / cpu_time_s if cpu_time_s > 0 else 0.0,
             "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
             "cpu_time_threads_s": {
@@ -779,21 +787,14 @@ def _check_speed(result: SlamResult, max_speed_m_s: float, name: str) -> None:
         )
 
 
-def _describe(image: Image, tracks: FrameTracks) -> tuple[IntArray, Descriptors]:
-    """ORB descriptors at the tracked features of the frontend image `image`."""
-    return orb_descriptors(image, tracks.pixels)
-
-
-def _save_keyframe(
-    folder: SlamFolder, stamp_ns: int, image: np.ndarray, encoded_png: bytes | None
-) -> None:
-    path = folder.keyframe_image(stamp_ns)
-    if encoded_png is not None:
-        path.write_bytes(encoded_png)  # as recorded, byte for byte
+def _save_keyframe(folder: SlamFolder, frame: Frame) -> None:
+    path = folder.keyframe_image(frame.stamp_ns)
+    if frame.encoded_png is not None:
+        path.write_bytes(frame.encoded_png)  # as recorded, byte for byte
         return
-    ok, data = cv2.imencode(".png", image)
+    ok, data = cv2.imencode(".png", frame.image)
     if not ok:
-        raise StageError(f"cannot encode keyframe {stamp_ns} as PNG")
+        raise StageError(f"cannot encode keyframe {frame.stamp_ns} as PNG")
     path.write_bytes(data.tobytes())
 
 

@@ -291,8 +291,8 @@ def test_an_error_in_the_estimator_stops_the_frontend_and_decoder_threads(
         return process(self, *args, **kwargs)
 
     monkeypatch.setattr(SlamEstimator, "process", failing_process)
-    with pytest.raises(KeyboardInterrupt):
-        run(SlamOptions(), wall_euroc, tmp_path / "slam")
+    with pytest.raises(KeyboardInterrupt):  # (a patch the estimator's own process misses)
+        run(SlamOptions(estimator_process="off"), wall_euroc, tmp_path / "slam")
     assert not _slam_threads()
 
 
@@ -385,3 +385,153 @@ def test_gyro_check_on_a_calibrated_rig(wall_euroc: Path, tmp_path: Path) -> Non
     with pytest.raises(ValueError, match="gyro_check 'yes'"):
         # A value the Literal type refuses, on purpose: the run must reject it.
         run(SlamOptions(gyro_check=cast(Any, "yes")), wall_euroc, tmp_path / "other")
+
+
+def _children() -> list[str]:
+    import multiprocessing
+
+    return [p.name for p in multiprocessing.active_children()]
+
+
+def test_the_estimator_process_gives_the_same_result_as_in_process(
+    wall_euroc: Path, tmp_path: Path
+) -> None:
+    inside = run(SlamOptions(estimator_process="off"), wall_euroc, tmp_path / "inside")
+    apart = run(SlamOptions(estimator_process="on"), wall_euroc, tmp_path / "apart")
+    for name in ("trajectory.tum", "keyframes.tum", "map.ply"):
+        assert (inside / name).read_bytes() == (apart / name).read_bytes(), name
+    images = sorted(p.name for p in (inside / "keyframes").iterdir())
+    assert images and images == sorted(p.name for p in (apart / "keyframes").iterdir())
+    for name in images:
+        assert (inside / "keyframes" / name).read_bytes() == (
+            apart / "keyframes" / name
+        ).read_bytes()
+    stats = json.loads((apart / "stats.json").read_text())
+    assert stats["estimator_process"] is True
+    threads = stats["cpu_time_threads_s"]
+    assert {"decode", "frontend", "main", "estimator", "estimator-start", "estimator-link"} <= set(
+        threads
+    )
+    # The worker's CPU time counts in the run's.
+    assert stats["cpu_time_s"] >= threads["estimator"] + threads["estimator-start"]
+    assert json.loads((inside / "stats.json").read_text())["estimator_process"] is False
+    assert not _children() and not _slam_threads()
+
+
+def test_an_error_in_the_estimator_process_is_raised_as_itself(
+    wall_euroc: Path, tmp_path: Path
+) -> None:
+    # Too short to start: the estimator's StageError, from the worker, as a StageError.
+    with pytest.raises(StageError, match=r"wall_euroc: .*keyframe") as raised:
+        run(SlamOptions(max_frames=1, estimator_process="on"), wall_euroc, tmp_path / "short")
+    cause = raised.value.__cause__
+    assert isinstance(cause, StageError)  # the worker's own error, with its traceback
+    assert any("estimator process" in note for note in cause.__notes__)
+    assert not (tmp_path / "short").exists()
+    assert not _children() and not _slam_threads()
+
+
+def test_the_estimator_process_ends_with_an_error_or_interrupt_in_the_parent(
+    wall_euroc: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from postproc.slam.estimator_process import EstimatorProcess
+
+    submit = EstimatorProcess.submit
+    calls = []
+
+    def interrupted(self: EstimatorProcess, *args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        if len(calls) == 20:
+            raise KeyboardInterrupt
+        return submit(self, *args, **kwargs)
+
+    monkeypatch.setattr(EstimatorProcess, "submit", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run(SlamOptions(estimator_process="on"), wall_euroc, tmp_path / "slam")
+    assert not _children() and not _slam_threads()
+    assert not (tmp_path / "slam").exists()
+
+
+def test_a_dead_estimator_process_is_a_stage_error(wall_euroc: Path, tmp_path: Path) -> None:
+    import os
+    import signal
+
+    import postproc.slam.estimator_process as estimator_process
+
+    class Killed(estimator_process.EstimatorProcess):
+        def submit(self, sequence: int, *args: Any) -> None:
+            if sequence == 15:
+                os.kill(self._process.pid or 0, signal.SIGKILL)
+                self._process.join()
+            super().submit(sequence, *args)
+
+    import postproc.slam.stage as stage
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(stage, "EstimatorProcess", Killed)
+        with pytest.raises(StageError, match="estimator process ended unexpectedly"):
+            run(SlamOptions(estimator_process="on"), wall_euroc, tmp_path / "slam")
+    assert not _children() and not _slam_threads()
+
+
+def test_auto_runs_the_estimator_apart_only_for_long_inputs() -> None:
+    from postproc.slam.estimator_process import MIN_FRAMES, use_a_process
+
+    assert not use_a_process("auto", MIN_FRAMES - 1)
+    assert use_a_process("auto", MIN_FRAMES) == (len(os.sched_getaffinity(0)) >= 2)
+    assert use_a_process("on", 1) and not use_a_process("off", 10**6)
+    with pytest.raises(ValueError, match="estimator_process 'yes'"):
+        use_a_process("yes", 10)
+
+
+CTRL_C_SCRIPT = """
+import sys, time
+from postproc.slam import estimator_process
+from postproc.slam.frontend import KltFrontend
+from postproc.slam.stage import SlamOptions, run
+
+track = KltFrontend.track
+def slow_track(self, *args, **kwargs):
+    time.sleep(0.1)  # keeps the run going until the Ctrl-C
+    return track(self, *args, **kwargs)
+KltFrontend.track = slow_track
+start = estimator_process.EstimatorProcess.__init__
+def started(self, *args, **kwargs):
+    start(self, *args, **kwargs)
+    print("worker", self._process.pid, flush=True)
+estimator_process.EstimatorProcess.__init__ = started
+run(SlamOptions(estimator_process="on"), sys.argv[1], sys.argv[2])
+"""
+
+
+def test_ctrl_c_stops_the_stage_and_its_estimator_process(wall_euroc: Path, tmp_path: Path) -> None:
+    import signal
+    import time
+
+    env = {**os.environ, "WRECKMAP_PROGRESS": "0"}
+    child = subprocess.Popen(
+        [sys.executable, "-c", CTRL_C_SCRIPT, str(wall_euroc), str(tmp_path / "slam")],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's job
+    )
+    try:
+        assert child.stdout is not None
+        worker = int(child.stdout.readline().split()[1])
+        time.sleep(2.0)  # the worker is estimating by now
+        os.killpg(child.pid, signal.SIGINT)  # what Ctrl-C sends: every process of the job
+        _, stderr = child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+            child.wait()
+    assert child.returncode != 0
+    assert stderr.count("KeyboardInterrupt") == 1, stderr  # the parent's, not the worker's
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and Path(f"/proc/{worker}").exists():
+        time.sleep(0.1)
+    assert not Path(f"/proc/{worker}").exists()
+    assert not (tmp_path / "slam").exists()

@@ -1,0 +1,428 @@
+"""The SLAM estimator beside the frontend: in this process, or in a second one.
+
+The stage's frontend (decoding, image preparation, KLT tracking) and its estimator
+(keyframe rule, GTSAM smoother, loop closure) take turns for Python's GIL when they
+share a process: GTSAM's pybind11 calls and the estimator's NumPy-heavy Python hold it
+while they run, so on two cores the threads barely overlap. `EstimatorProcess` runs the
+estimator in a process of its own (started with "spawn": never a fork of this threaded
+process), fed through a pipe:
+
+    parent -> worker   ("frame", sequence, tracks or None), ("finish",)
+    worker -> parent   ("frame", sequence, gyro bias, is keyframe), then
+                       ("result", SlamResult, CPU seconds) or ("error", exception, traceback)
+
+The frontend images that keyframe descriptors are computed on (`describe`) go through a
+shared-memory ring of `slots` images: the parent copies each estimated image into slot
+`sequence % slots` before it sends the frame, and reuses a slot only once the worker has
+answered for the frame that held it. The worker reads the slot only when the frame turns
+out to be a keyframe. The estimator sees the same tracks, the same images and the same
+order as in-process, and the frontend gets the same biases (`publish`, the stage's
+`BiasBoard`), so the result is the same to the bit.
+
+`InProcessEstimator` has the same interface and runs the estimator in the caller's
+thread (tiny inputs, one core, tests that patch the estimator).
+
+An error in the worker is raised in the parent as itself (pickled: a StageError stays a
+StageError), with the worker's traceback as a note. The worker ignores SIGINT (the
+parent decides), and stops when the parent closes the pipe or dies (its next read finds
+the pipe closed); `close` terminates it if it is still busy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import multiprocessing
+import os
+import pickle
+import signal
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from multiprocessing.shared_memory import SharedMemory
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from postproc.slam.estimator import SlamEstimator, SlamResult
+from postproc.slam.frontend import Image
+from postproc.slam.inputs import Frame
+from postproc.slam.loop_closure import Descriptors, orb_descriptors
+from postproc.slam.options import EstimatorOptions
+from postproc.slam.types import FloatArray, FrameTracks, ImuSamples, IntArray
+from postproc.slam.visual_only import VisualOnlyEstimator
+from shared.calibration.kalibr import ImuNoise
+from shared.errors import StageError
+
+Estimator = SlamEstimator | VisualOnlyEstimator
+Publish = Callable[[int, FloatArray | None], None]
+"""Called with (sequence, gyro bias) once the estimator is done with an image."""
+OnKeyframe = Callable[[Frame], None]
+"""Called with the frame of each image the estimator made a keyframe, in order."""
+
+MIN_FRAMES = 300
+"""'auto' runs the estimator in a second process from this many images on (10 s at
+30 fps): starting it costs about 0.6 CPU seconds (a fresh interpreter importing NumPy,
+OpenCV and GTSAM)."""
+
+
+@dataclass(frozen=True)
+class EstimatorSetup:
+    """What an estimator is built from.
+
+    imu / imu_noise: the IMU samples and noise (both None: the visual-only baseline).
+    image_shape: (rows, cols) of the frontend images (uint8) `describe` works on.
+    """
+
+    options: EstimatorOptions
+    focal_px: float
+    imu_from_cam: FloatArray
+    imu: ImuSamples | None
+    imu_noise: ImuNoise | None
+    image_shape: tuple[int, int]
+
+    def initial_gyro_bias(self) -> FloatArray | None:
+        """The gyro bias the frontend seeds with before the estimator has one."""
+        return np.zeros(3) if self.imu is not None and self.imu_noise is not None else None
+
+    def build(self) -> Estimator:
+        """The estimator (SlamEstimator with an IMU, VisualOnlyEstimator without)."""
+        if self.imu is None or self.imu_noise is None:
+            return VisualOnlyEstimator(
+                self.options, focal_px=self.focal_px, imu_from_cam=self.imu_from_cam
+            )
+        return SlamEstimator(
+            self.options,
+            focal_px=self.focal_px,
+            imu_from_cam=self.imu_from_cam,
+            imu=self.imu,
+            imu_noise=self.imu_noise,
+        )
+
+
+def gyro_bias(estimator: Estimator) -> FloatArray | None:
+    """The gyro bias (rad/s) of the estimator's last keyframe (zero before the start; None
+    without an IMU): what the frontend's rotation seeds use."""
+    if not isinstance(estimator, SlamEstimator):
+        return None
+    backend = estimator.backend
+    if not backend.num_keyframes:
+        return np.zeros(3)
+    return np.asarray(backend.bias_of(backend.num_keyframes - 1).gyroscope(), dtype=np.float64)
+
+
+def describe(image: Image, tracks: FrameTracks) -> tuple[IntArray, Descriptors]:
+    """ORB descriptors at the tracked features of the frontend image `image`."""
+    return orb_descriptors(image, tracks.pixels)
+
+
+def use_a_process(mode: str, frames: int) -> bool:
+    """Whether the stage runs its estimator in a second process: `mode` "on", "off", or
+    "auto" (at least `MIN_FRAMES` images and two cores this process may use)."""
+    if mode not in ("auto", "on", "off"):
+        raise ValueError(f"estimator_process {mode!r}: expected 'auto', 'on' or 'off'")
+    if mode != "auto":
+        return mode == "on"
+    if multiprocessing.current_process().daemon:
+        return False  # a daemonic process may not start one
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return frames >= MIN_FRAMES and (cores or 1) >= 2
+
+
+class EstimatorRunner(Protocol):
+    """Where the stage sends its tracked images (`InProcessEstimator`, `EstimatorProcess`)."""
+
+    worker_cpu_s: float
+    """CPU seconds of a second process (0 without one), after `finish`."""
+
+    def submit(self, sequence: int, frame: Frame, tracks: FrameTracks | None, image: Image) -> None:
+        """Image `sequence` (0, 1, ...): estimate `tracks` (None: only pass it on)."""
+
+    def finish(self) -> SlamResult:
+        """The estimator's result once every submitted image is done."""
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU seconds of the estimator's threads (after `finish`)."""
+
+    def close(self) -> None:
+        """Stop (idempotent; a worker still running is ended)."""
+
+
+class InProcessEstimator:
+    """The estimator in the calling thread: `submit` estimates before it returns."""
+
+    def __init__(self, setup: EstimatorSetup, *, publish: Publish, on_keyframe: OnKeyframe):
+        self.estimator = setup.build()
+        self._publish = publish
+        self._on_keyframe = on_keyframe
+        self.worker_cpu_s = 0.0
+
+    def submit(self, sequence: int, frame: Frame, tracks: FrameTracks | None, image: Image) -> None:
+        if tracks is not None:
+            decision = self.estimator.process(tracks, functools.partial(describe, image, tracks))
+            if decision.is_keyframe:
+                self._on_keyframe(frame)
+        self._publish(sequence, gyro_bias(self.estimator))
+
+    def finish(self) -> SlamResult:
+        return self.estimator.finish()
+
+    def cpu_seconds(self) -> dict[str, float]:
+        return {}  # the caller's thread: the caller counts it
+
+    def close(self) -> None:
+        pass
+
+
+class ImageRing:
+    """`slots` frontend images (uint8, `shape`) in shared memory, by sequence number."""
+
+    def __init__(self, shape: tuple[int, int], slots: int, *, name: str | None = None) -> None:
+        self.shape = shape
+        self.slots = slots
+        size = max(slots * shape[0] * shape[1], 1)
+        self._memory = SharedMemory(name=name, create=name is None, size=size)
+        self._images: np.ndarray[Any, np.dtype[np.uint8]] = np.ndarray(
+            (slots, *shape), dtype=np.uint8, buffer=self._memory.buf
+        )
+
+    @property
+    def name(self) -> str:
+        """The shared-memory block's name (to attach to it from another process)."""
+        return self._memory.name
+
+    def put(self, sequence: int, image: Image) -> None:
+        """Store image `sequence` (its slot must be free: see EstimatorProcess)."""
+        if image.shape != self.shape:
+            raise StageError(
+                f"frontend image {sequence}: {image.shape[1]}x{image.shape[0]} px, expected "
+                f"{self.shape[1]}x{self.shape[0]} (the images changed size mid-recording?)"
+            )
+        self._images[sequence % self.slots] = image
+
+    def get(self, sequence: int) -> Image:
+        """A copy of image `sequence`."""
+        image: Image = self._images[sequence % self.slots].copy()
+        return image
+
+    def close(self, *, unlink: bool = False) -> None:
+        """Detach (and, by the process that made it, free) the block."""
+        del self._images
+        self._memory.close()
+        if unlink:
+            self._memory.unlink()
+
+
+class EstimatorProcess:
+    """The estimator in a second process, fed image by image (module docstring).
+
+    `submit` copies the image into the ring and sends the tracks; it waits only when the
+    worker still holds the ring slot it needs (`slots` images behind). A thread of this
+    process ("slam-estimator-link") reads the worker's answers: it calls `publish` with
+    each image's gyro bias and `on_keyframe` with each keyframe's frame, in order.
+    Use it as a context manager (or call `close`): the worker never outlives it.
+    """
+
+    def __init__(
+        self,
+        setup: EstimatorSetup,
+        *,
+        publish: Publish,
+        on_keyframe: OnKeyframe,
+        slots: int,
+    ) -> None:
+        self._publish = publish
+        self._on_keyframe = on_keyframe
+        self._ring = ImageRing(setup.image_shape, slots)
+        self._slots = slots
+        context = multiprocessing.get_context("spawn")
+        worker_inbox, self._inbox = context.Pipe(duplex=False)
+        self._outbox, worker_outbox = context.Pipe(duplex=False)
+        self._process = context.Process(
+            target=_serve,
+            args=(worker_inbox, worker_outbox, setup, self._ring.name, slots),
+            name="slam-estimator",
+            daemon=True,
+        )
+        self._changed = threading.Condition()
+        self._answered = -1  # the last image the worker is done with
+        self._frames: dict[int, Frame] = {}  # submitted, not yet answered
+        self._ended = False  # the link thread is done (result, error or a dead worker)
+        self._failure: BaseException | None = None
+        self._result: SlamResult | None = None
+        self._cpu: dict[str, float] = {}
+        self.worker_cpu_s = 0.0
+        """The worker process's CPU seconds, all of them (after `finish`)."""
+        self._closed = False
+        try:
+            with _sigint_ignored():
+                self._process.start()
+        except BaseException:
+            self._ring.close(unlink=True)
+            raise
+        finally:
+            # The worker's ends belong to it now: closing ours lets each side see the
+            # other's end (EOF) when it goes.
+            worker_inbox.close()
+            worker_outbox.close()
+        self._link = threading.Thread(target=self._receive, name="slam-estimator-link")
+        self._link.start()
+
+    def __enter__(self) -> EstimatorProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def submit(self, sequence: int, frame: Frame, tracks: FrameTracks | None, image: Image) -> None:
+        with self._changed:
+            self._changed.wait_for(lambda: self._answered >= sequence - self._slots or self._ended)
+            if self._ended:
+                self._raise_failure()
+            self._frames[sequence] = frame
+        if tracks is not None:
+            self._ring.put(sequence, image)
+        try:
+            self._inbox.send(("frame", sequence, tracks))
+        except OSError:  # the worker is gone (BrokenPipeError): say why
+            self._link.join()
+            self._raise_failure()
+            raise
+
+    def finish(self) -> SlamResult:
+        with contextlib.suppress(OSError):  # the worker is gone: the link thread knows why
+            self._inbox.send(("finish",))
+        self._link.join()
+        if self._result is None:
+            self._raise_failure()
+        assert self._result is not None
+        return self._result
+
+    def cpu_seconds(self) -> dict[str, float]:
+        return dict(self._cpu)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._inbox.close()  # a waiting worker reads EOF and returns
+        if self._result is None:  # still busy (an error here, Ctrl-C): no need to wait
+            self._process.terminate()
+        self._process.join(timeout=10)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+        self._link.join()
+        self._outbox.close()
+        self._ring.close(unlink=True)
+
+    def _raise_failure(self) -> None:
+        if self._failure is not None:
+            raise self._failure
+        self._process.join(timeout=10)
+        raise StageError(
+            f"the SLAM estimator process ended unexpectedly (exit code {self._process.exitcode})"
+        )
+
+    def _receive(self) -> None:
+        """The link thread: the worker's answers, until its result, error or end."""
+        try:
+            while True:
+                try:
+                    message = self._outbox.recv()
+                except (EOFError, OSError):
+                    return  # the worker is gone (`_raise_failure` says how)
+                if message[0] == "frame":
+                    _, sequence, bias, is_keyframe = message
+                    self._publish(sequence, bias)
+                    with self._changed:
+                        frame = self._frames.pop(sequence)
+                        self._answered = sequence
+                        self._changed.notify_all()
+                    if is_keyframe:
+                        self._on_keyframe(frame)
+                elif message[0] == "result":
+                    _, self._result, threads_s, self.worker_cpu_s = message
+                    self._cpu.update(threads_s)
+                    return
+                else:
+                    _, error, trace = message
+                    error.add_note(f"in the SLAM estimator process:\n{trace}")
+                    self._failure = error
+                    return
+        except BaseException as error:  # (a keyframe not written, say): raised by submit or finish
+            self._failure = error
+        finally:
+            self._cpu["estimator-link"] = time.thread_time()
+            with self._changed:
+                self._ended = True
+                self._changed.notify_all()
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored (main thread only): a process started meanwhile inherits that, so
+    a Ctrl-C during its start (imports) does not print a second traceback."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _describe_slot(
+    ring: ImageRing, sequence: int, tracks: FrameTracks
+) -> tuple[IntArray, Descriptors]:
+    return describe(ring.get(sequence), tracks)
+
+
+def _serve(
+    inbox: Connection, outbox: Connection, setup: EstimatorSetup, ring_name: str, slots: int
+) -> None:
+    """The worker: estimate each image the parent sends, answer with its gyro bias."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    ring: ImageRing | None = None
+    try:
+        ring = ImageRing(setup.image_shape, slots, name=ring_name)
+        estimator = setup.build()
+        start_s = time.thread_time()
+        opencv_threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)  # as the stage sets it around its image loop
+        while True:
+            try:
+                message = inbox.recv()
+            except EOFError:
+                return  # the parent is gone
+            if message[0] == "finish":
+                break
+            _, sequence, tracks = message
+            is_keyframe = False
+            if tracks is not None:
+                decision = estimator.process(
+                    tracks, functools.partial(_describe_slot, ring, sequence, tracks)
+                )
+                is_keyframe = decision.is_keyframe
+            outbox.send(("frame", sequence, gyro_bias(estimator), is_keyframe))
+        cv2.setNumThreads(opencv_threads)
+        result = estimator.finish()
+        cpu = {"estimator-start": start_s, "estimator": time.thread_time() - start_s}
+        outbox.send(("result", result, cpu, time.process_time()))
+    except BaseException as error:  # handed to the parent, raised there
+        trace = traceback.format_exc()
+        try:
+            pickle.dumps(error)
+        except Exception:  # an error that does not pickle: its words
+            error = StageError(f"{type(error).__name__}: {error}")
+        with contextlib.suppress(OSError):  # the parent is gone
+            outbox.send(("error", error, trace))
+    finally:
+        if ring is not None:
+            ring.close()
+        outbox.close()
