@@ -8,7 +8,7 @@ estimator in a process of its own (started with "spawn": never a fork of this th
 process), fed through a pipe:
 
     parent -> worker   ("frame", sequence, tracks or None), ("finish",)
-    worker -> parent   ("frame", sequence, gyro bias, is keyframe), then
+    worker -> parent   ("frame", sequence, gyro bias, is keyframe), ("log", record), then
                        ("result", SlamResult, CPU seconds) or ("error", exception, traceback)
 
 The frontend images that keyframe descriptors are computed on (`describe`) go through a
@@ -22,7 +22,9 @@ order as in-process, and the frontend gets the same biases (`publish`, the stage
 `InProcessEstimator` has the same interface and runs the estimator in the caller's
 thread (tiny inputs, one core, tests that patch the estimator).
 
-An error in the worker is raised in the parent as itself (pickled: a StageError stays a
+The worker's log records are logged by the parent (its handlers, its format), at the
+level the parent's "postproc.slam" logger has when the worker starts. An error in the
+worker is raised in the parent as itself (pickled: a StageError stays a
 StageError), with the worker's traceback as a note. The worker ignores SIGINT (the
 parent decides), and stops when the parent closes the pipe or dies (its next read finds
 the pipe closed); `close` terminates it if it is still busy.
@@ -31,7 +33,9 @@ the pipe closed); `close` terminates it if it is still busy.
 from __future__ import annotations
 
 import contextlib
+import copy
 import functools
+import logging
 import multiprocessing
 import os
 import pickle
@@ -244,7 +248,14 @@ class EstimatorProcess:
         self._outbox, worker_outbox = context.Pipe(duplex=False)
         self._process = context.Process(
             target=_serve,
-            args=(worker_inbox, worker_outbox, setup, self._ring.name, slots),
+            args=(
+                worker_inbox,
+                worker_outbox,
+                setup,
+                self._ring.name,
+                slots,
+                logging.getLogger("postproc.slam").getEffectiveLevel(),
+            ),
             name="slam-estimator",
             daemon=True,
         )
@@ -345,6 +356,9 @@ class EstimatorProcess:
                         self._changed.notify_all()
                     if is_keyframe:
                         self._on_keyframe(frame)
+                elif message[0] == "log":  # the worker's, through this process's handlers
+                    record = message[1]
+                    logging.getLogger(record.name).handle(record)
                 elif message[0] == "result":
                     _, self._result, threads_s, self.worker_cpu_s = message
                     self._cpu.update(threads_s)
@@ -383,11 +397,41 @@ def _describe_slot(
     return describe(ring.get(sequence), tracks)
 
 
+class _LogToParent(logging.Handler):
+    """The worker's log records, sent to the parent (which logs them as its own)."""
+
+    def __init__(self, outbox: Connection) -> None:
+        super().__init__()
+        self._outbox = outbox
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            # Made picklable as logging.handlers.QueueHandler does: the message formatted,
+            # the traceback as text.
+            record = copy.copy(record)
+            record.msg = record.getMessage()
+            record.args = None
+            if record.exc_info:
+                record.exc_text = logging.Formatter().formatException(record.exc_info)
+                record.exc_info = None
+            self._outbox.send(("log", record))
+        except Exception:
+            self.handleError(record)
+
+
 def _serve(
-    inbox: Connection, outbox: Connection, setup: EstimatorSetup, ring_name: str, slots: int
+    inbox: Connection,
+    outbox: Connection,
+    setup: EstimatorSetup,
+    ring_name: str,
+    slots: int,
+    log_level: int,
 ) -> None:
     """The worker: estimate each image the parent sends, answer with its gyro bias."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    root = logging.getLogger()
+    root.handlers[:] = [_LogToParent(outbox)]
+    root.setLevel(log_level)
     ring: ImageRing | None = None
     try:
         ring = ImageRing(setup.image_shape, slots, name=ring_name)

@@ -418,6 +418,20 @@ def test_the_estimator_process_gives_the_same_result_as_in_process(
     assert not _children() and not _slam_threads()
 
 
+def test_the_estimator_process_logs_through_the_parent(
+    wall_euroc: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    import logging
+
+    caplog.set_level(logging.DEBUG, logger="postproc.slam")
+    run(SlamOptions(estimator_process="on", max_frames=40), wall_euroc, tmp_path / "slam")
+    # The backend's debug line of every keyframe, logged in the worker.
+    assert any(
+        r.name == "postproc.slam.backend" and "new landmarks" in r.getMessage()
+        for r in caplog.records
+    )
+
+
 def test_an_error_in_the_estimator_process_is_raised_as_itself(
     wall_euroc: Path, tmp_path: Path
 ) -> None:
