@@ -103,7 +103,7 @@ def set_refine_option(options: SfmOptions, setting: str) -> None:
         value = text.lower() in ("1", "true", "yes", "on")
     elif isinstance(current, int):
         value = int(text)
-    elif isinstance(current, float):
+    elif isinstance(current, float) or current is None:  # None: an optional number, unset
         value = float(text)
     else:
         value = text

@@ -38,6 +38,12 @@ together by decimetres to metres, and the rounds went on (on bench_sfm.py's 10-m
 dive the third round moved the cameras by 82 cm, 3 cm of it a change of shape).
 `shape_moves_m` tells the two apart in the round records.
 
+Each adjustment also stops once an iteration no longer lowers the chi-square of its
+observations by `RefineOptions.ba_chi2_tolerance` (a relative cost change scaled by the
+number of residuals): COLMAP's absolute gradient rule is rarely met by a large problem,
+and on a long dive every adjustment ran to its iteration limit for gains far below the
+reprojection noise.
+
 Sessions without a world pose (no shared target in the merge) are tied in
 where natural features allow: their keyframes are registered one by one by
 absolute pose estimation against the model (COLMAP's incremental
@@ -226,6 +232,19 @@ def cap_tracks(
     return dropped
 
 
+def function_tolerance(floor: float, chi2_tolerance: float | None, observations: int) -> float:
+    """Ceres's relative cost tolerance that stops an adjustment once an iteration lowers the
+    chi-square of `observations` observations (2 residuals each) by less than
+    `chi2_tolerance`, and never below `floor`.
+
+    With N residuals of noise sigma, chi2 = 2 cost / sigma^2 and sigma^2 is about
+    2 cost / N, so a change of chi2 by c is a relative change of the cost by c / N.
+    """
+    if chi2_tolerance is None or observations <= 0:
+        return floor
+    return max(floor, chi2_tolerance / (2.0 * observations))
+
+
 class _Mapper:
     """One pycolmap mapper over one database cache (both must live together)."""
 
@@ -278,6 +297,14 @@ class _Mapper:
             added += self.mapper.triangulate_image(self.tri_options, image_id)
         return added
 
+    def _set_function_tolerance(self, observations: int) -> None:
+        """The adjustment's relative cost tolerance for `observations` observations (see
+        `RefineOptions.ba_chi2_tolerance`)."""
+        solver = self.ba_options.ceres.solver_options
+        solver.function_tolerance = function_tolerance(
+            self.options.ba_function_tolerance, self.options.ba_chi2_tolerance, observations
+        )
+
     def refine_rounds(self, rounds: list[dict[str, float]], *, converged_change_m: float) -> None:
         """Rounds of (merge/complete tracks, retriangulate, BA with priors, filter) until
         95 % of the camera centres move less than `converged_change_m` (or are predicted
@@ -303,6 +330,7 @@ class _Mapper:
                     self.mapper.observation_manager,
                     self.options.ba_max_track_length,
                 )
+            self._set_function_tolerance(observations - dropped)
             t1 = time.perf_counter()
             self.mapper.adjust_global_bundle(self.mapper_options, self.ba_options)
             t2 = time.perf_counter()

@@ -158,3 +158,31 @@ def test_dogleg_needs_no_more_rounds_and_stays_accurate(
         errors[strategy] = _worst_sim3_m(result.world_from_cam, slam_survey)
     assert rounds["dogleg"] <= rounds["levenberg_marquardt"], rounds
     assert errors["dogleg"] < 1.1 * errors["levenberg_marquardt"] + 0.001, errors
+
+
+def test_chi2_rule_sets_the_tolerance_per_adjustment(matched: Path, tmp_path: Path) -> None:
+    keyframes, _ = build_keyframes(read_inputs([matched / "merge"]), SfmOptions())
+    database = tmp_path / "database.db"
+    shutil.copyfile(matched / "sfm" / "database.db", database)
+    placed = dict(zip(keyframes.names, keyframes.world_from_cam, strict=True))
+    mapper = _Mapper(database, placed, RefineOptions(num_threads=2, ba_chi2_tolerance=4.0))
+    solver = mapper.ba_options.ceres.solver_options
+    mapper._set_function_tolerance(500)
+    assert solver.function_tolerance == pytest.approx(4.0 / 1000)
+    mapper._set_function_tolerance(2000)
+    assert solver.function_tolerance == pytest.approx(4.0 / 4000)
+    mapper.close()
+
+
+def test_chi2_rule_stays_accurate(
+    matched: Path, slam_survey: list[SlamLikeSession], tmp_path: Path
+) -> None:
+    keyframes, _ = build_keyframes(read_inputs([matched / "merge"]), SfmOptions())
+    errors: dict[float | None, float] = {}
+    for tolerance in (None, RefineOptions().ba_chi2_tolerance):
+        database = tmp_path / f"chi2_{tolerance}.db"
+        shutil.copyfile(matched / "sfm" / "database.db", database)
+        options = RefineOptions(num_threads=2, ba_chi2_tolerance=tolerance)
+        result = refine_with_priors(database, keyframes, options)
+        errors[tolerance] = _worst_sim3_m(result.world_from_cam, slam_survey)
+    assert errors[RefineOptions().ba_chi2_tolerance] < 1.1 * errors[None] + 0.001, errors

@@ -10,7 +10,13 @@ import pytest
 
 from postproc.sfm.database import KeyframeSet
 from postproc.sfm.features import FeatureOptions
-from postproc.sfm.refine import RefineOptions, fit_world_from_session, refine, shape_moves_m
+from postproc.sfm.refine import (
+    RefineOptions,
+    fit_world_from_session,
+    function_tolerance,
+    refine,
+    shape_moves_m,
+)
 from postproc.sfm.stage import SfmOptions, _fill_missing, run
 from shared.errors import StageError
 from shared.formats.tum import read_tum
@@ -47,6 +53,16 @@ def test_shape_moves_ignore_a_common_similarity() -> None:
     assert np.argmax(shape) == 7 and 0.2 < shape[7] < 0.3
 
 
+def test_function_tolerance_is_a_chi2_change_per_residual() -> None:
+    # 1000 observations are 2000 residuals: a chi-square change of 10 is 10 / 2000 of the cost.
+    assert function_tolerance(0.0, 10.0, 1000) == pytest.approx(0.005)
+    # Twice the observations, half the relative change: the same change of chi-square.
+    assert function_tolerance(0.0, 10.0, 2000) == pytest.approx(0.0025)
+    assert function_tolerance(1e-2, 10.0, 1000) == pytest.approx(1e-2)  # never below the floor
+    assert function_tolerance(1e-6, None, 1000) == 1e-6  # off: the floor alone
+    assert function_tolerance(0.0, 10.0, 0) == 0.0  # nothing to adjust
+
+
 def test_fill_missing_carries_the_nearest_correction() -> None:
     prior = make_pose(np.broadcast_to(np.eye(3), (4, 3, 3)), np.arange(12.0).reshape(4, 3))
     keyframes = KeyframeSet(
@@ -79,6 +95,8 @@ def test_fill_missing_carries_the_nearest_correction() -> None:
         {"ba_max_direct_sparse_images": -1},
         {"ba_max_track_length": 2},
         {"ba_trust_region": "newton"},
+        {"ba_chi2_tolerance": 0.0},
+        {"ba_chi2_tolerance": -1.0},
     ],
 )
 def test_refine_options_reject_bad_values(kwargs: dict[str, object]) -> None:
