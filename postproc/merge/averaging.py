@@ -375,6 +375,7 @@ def estimate_drift_model(
     *,
     prior_rate_rotation_rad2_per_s: float,
     prior_rate_translation_m2_per_s: float,
+    prior_rate_tilt_rad2_per_s: float | None = None,
     prior_weight_pairs: float = 2.0,
     min_rotation_sigma_rad: float = 2e-4,
     min_translation_sigma_m: float = 2e-4,
@@ -388,13 +389,18 @@ def estimate_drift_model(
     targets: the scatter inside passes and the differences of consecutive pass
     means (both exact for the model, see the code); the rate is then shrunk
     toward the prior with the weight of `prior_weight_pairs` pairs. With no
-    pair of passes the rate is the prior.
+    pair of passes the rate is the prior. prior_rate_tilt_rad2_per_s: the prior of
+    the first two rotation axes (roll and pitch in a gravity-aligned session frame)
+    where it differs from the rotation's: a visual-inertial SLAM sees gravity, so its
+    roll and pitch stay bounded instead of drifting (0); None: as the rotation's.
     Raises ValueError for mismatched lengths.
     """
     if not len(residuals) == len(times_s) == len(pass_ids):
         raise ValueError("estimate_drift_model: residuals, times and pass ids differ in length")
     floor = np.array([min_rotation_sigma_rad**2] * 3 + [min_translation_sigma_m**2] * 3)
     prior = np.array([prior_rate_rotation_rad2_per_s] * 3 + [prior_rate_translation_m2_per_s] * 3)
+    if prior_rate_tilt_rad2_per_s is not None:
+        prior[:2] = prior_rate_tilt_rad2_per_s
     # Moment equations per axis, exact for the random walk plus noise:
     #   inside passes: E[sum (r - pass mean)²] = (n - 1) s² + q c,
     #     c = sum τ - mean over (i, j) of min(τi, τj) (the drift inside the pass);

@@ -649,6 +649,10 @@ def _average_ours(
             prior_rate_rotation_rad2_per_s=np.deg2rad(options.drift_rate_rotation_deg_per_sqrt_s)
             ** 2,
             prior_rate_translation_m2_per_s=options.drift_rate_translation_m_per_sqrt_s**2,
+            # The sessions are gravity-aligned by their IMUs, which hold roll and pitch:
+            # only the measured tilt drift counts (the targets' tilt was 2-3x looser
+            # than its error against the truth with the yaw's prior on all three axes).
+            prior_rate_tilt_rad2_per_s=0.0,
         )
         if models is not None and model.pass_pairs > 0:
             models[session.name] = model
@@ -724,11 +728,12 @@ def _drift_rates(
     options: MergeOptions, sessions: Sequence[Session], models: dict[str, DriftModel]
 ) -> dict[str, FloatArray]:
     """Per session the drift variance rates (6,): measured from its targets' passes when
-    it has them, else the prior (`drift_rate_*`)."""
+    it has them, else the prior (`drift_rate_*`; none for roll and pitch)."""
     prior = np.array(
         [np.deg2rad(options.drift_rate_rotation_deg_per_sqrt_s) ** 2] * 3
         + [options.drift_rate_translation_m_per_sqrt_s**2] * 3
     )
+    prior[:2] = 0.0  # roll and pitch: held by gravity (`_average_ours`)
     return {s.name: models[s.name].drift_rate if s.name in models else prior for s in sessions}
 
 

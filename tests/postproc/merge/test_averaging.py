@@ -292,3 +292,29 @@ def test_estimate_drift_model_falls_back_to_the_prior():
             prior_rate_rotation_rad2_per_s=1e-8,
             prior_rate_translation_m2_per_s=1e-5,
         )
+
+
+def test_estimate_drift_model_keeps_a_gravity_held_tilt_from_the_yaw_prior():
+    """A visual-inertial session drifts in yaw only: with the yaw's prior on every
+    rotation axis the tilt is claimed to drift too; with no tilt prior it is not."""
+    rng = np.random.default_rng(8)
+    rate = RATE.copy()
+    rate[:2] = 0.0
+    residuals, times, ids = [], [], []
+    truth = make_pose(np.eye(3), np.zeros(3))
+    for _ in range(2):
+        poses = _drifting_observations(rng, truth, PASS_TIMES, rate, NOISE)
+        residuals.append(pose_residuals(poses, truth))
+        times.append(PASS_TIMES)
+        ids.append(PASS_IDS)
+    common = dict(
+        prior_rate_rotation_rad2_per_s=float(RATE[2]),
+        prior_rate_translation_m2_per_s=float(RATE[3]),
+    )
+    same = estimate_drift_model(residuals, times, ids, **common)
+    held = estimate_drift_model(residuals, times, ids, **common, prior_rate_tilt_rad2_per_s=0.0)
+    # Four pass pairs against a prior worth two: a third of the yaw's rate stays.
+    assert np.all(same.drift_rate[:2] > 0.3 * RATE[2])
+    assert np.all(held.drift_rate[:2] < 0.1 * RATE[2])
+    np.testing.assert_allclose(held.drift_rate[2:], same.drift_rate[2:])
+    np.testing.assert_allclose(held.noise, same.noise)
