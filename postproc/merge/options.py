@@ -130,7 +130,9 @@ class MergeOptions:
     drift_rate_rotation_deg_per_sqrt_s / drift_rate_translation_m_per_sqrt_s: the
         prior drift rate (1 sigma per axis after one second, growing with the square
         root of time); each session's own rate is measured from the differences
-        between passes over the same target and shrunk toward this prior.
+        between passes over the same target and shrunk toward this prior. The
+        rotation's is the yaw's: roll and pitch, held by gravity in a visual-inertial
+        SLAM, have none (only their measured drift counts).
     camera: the camchain entry that took the keyframes.
     plot: write the top and side views.
     detection: tag detection settings.
@@ -139,8 +141,10 @@ class MergeOptions:
         become optional. "auto": only when the targets cannot place every session
         (none given, or a session shares no target with the others): on the simulated
         wreck's 240 s dives, targets and features together still turn the frame
-        further than targets alone (0.133 against 0.070 deg RMS over two seeds; the
-        translation is better, 3.8 against 4.6 cm; docs/benchmarks.md, "Merge").
+        further than targets alone (0.112 against 0.058 deg RMS over two seeds; the
+        translation is better, 3.7 against 4.4 cm; docs/benchmarks.md, "Merge"): the
+        features' yaw is looser than their covariance claims (whitened error 1.5 RMS
+        over draws of the SLAM error, the targets' 0.7).
         True: always. False: targets only, placed session by session
         (`align.place_sessions`).
     places: natural-feature settings (`places.PlaceOptions`).
