@@ -130,7 +130,10 @@ class RefineOptions:
         revisiting dive every adjustment ran to its 50-iteration limit, the last ten or
         more each lowering the cost by a few parts in a million. With 10, the adjustments
         of the refinement took 56 against 81 s CPU there (7.8 against 9.8 s on its first
-        3 minutes), sim3 ATE 0.80 / 0.76 cm against 0.85 / 0.75 cm.
+        3 minutes); the whole refinement 103-110 against 118-131 s CPU (16.0-17.5 against
+        18.1-18.8 s at 3 minutes; three runs against two, load 3-9), sim3 ATE 0.80 / 0.76
+        against 0.85 / 0.75 cm, without alignment 42.7 / 29.9 against 41.5 / 29.9 cm.
+        The iterations that remain alternate accepted and rejected dogleg steps.
     ba_max_track_length: observations of one point that go into each adjustment, at most
         (None: all). Longer tracks keep this many, spread evenly over their keyframes
         (first and last included, so a point seen on several passes still ties them),
