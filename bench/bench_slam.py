@@ -14,8 +14,8 @@ Usage:
 EuRoC copy (PNG) and from its MP4 imported as a session folder (H.264); prints the
 real-time factor per wall second and per CPU second (load average beside it), the ATE
 and the CPU seconds of each of the stage's threads (decode, frontend, estimator; with
-the estimator in a second process also its start, the hand-over thread "main" and the
-answers' thread "estimator-link"). `--estimator-process` sets `SlamOptions.estimator_process`.
+the estimator in a second process also its start and the thread that takes its answers,
+"estimator-link"). `--estimator-process` sets `SlamOptions.estimator_process`.
 
 `--long`: a 45-minute feature-level dive (the diver sweeps the 40 m wreck side
 back and forth, so features never run out); prints the process RSS and the
@@ -305,7 +305,7 @@ def speed(
     duration_s: float,
     seed: int,
     inputs: list[str],
-    estimator_process: Literal["auto", "on", "off"] = "auto",
+    estimator_process: Literal["auto", "on", "off"] | None = None,
 ) -> None:
     """Real-time factor of the stage at its defaults on one rendered 960x540, 30 fps
     session (the size and rate of issue #23), from its EuRoC copy (PNG images) and from
@@ -345,7 +345,10 @@ def speed(
             # EuRoC copy's (the same images, in the same order).
             clock_ns = _first_frame_ns(euroc) - _first_frame_ns(recording)
         out = work / f"slam_{survey.name}_speed_{kind}"
-        run_slam(SlamOptions(estimator_process=estimator_process), recording, out, overwrite=True)
+        options = SlamOptions()
+        if estimator_process is not None:
+            options.estimator_process = estimator_process
+        run_slam(options, recording, out, overwrite=True)
         stats = SlamFolder(out).read_stats()
         estimate = SlamFolder(out).read_trajectory()
         # Ground truth is on the IMU clock; the trajectory on the camera clock.
@@ -721,8 +724,7 @@ def main() -> None:
     parser.add_argument(
         "--estimator-process",
         choices=("auto", "on", "off"),
-        default="auto",
-        help="with --speed: the estimator in a second process, in-process, or as the stage picks",
+        help="with --speed: SlamOptions.estimator_process (default: the stage's default)",
     )
     parser.add_argument(
         "--only", nargs="*", help="with --real: these recordings (handheld_a, karma, ...)"

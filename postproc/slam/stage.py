@@ -33,7 +33,7 @@ the images alone, gravity-aligned by the IMU (postproc.slam.stabilised).
 stats.json reports the check ("gyro_check*", "camera_imu_rigid", "mode").
 
 Images are decoded one thread ahead and tracked one more thread ahead of the
-estimator (`prefetch`, `BiasBoard`), which runs in a second process on long inputs
+estimator (`prefetch`, `BiasBoard`), which can run in a second process
 (`SlamOptions.estimator_process`, postproc.slam.estimator_process). A trajectory whose
 keyframes move faster than `SlamOptions.max_speed_m_s` has diverged and is
 refused with a StageError rather than written.
@@ -369,8 +369,8 @@ def _build(
     )
     # CPU seconds of each thread (stats.json "cpu_time_threads_s"): decoding and image
     # preparation, tracking, and the estimator: in-process this thread, from here to
-    # its result; in a second process, the worker's start and estimation, this
-    # thread's hand-over ("main") and the thread that takes the answers ("estimator-link").
+    # its result; in a second process, the worker's start and estimation and the
+    # thread that takes its answers ("estimator-link"), this thread then tracking.
     thread_cpu_s: dict[str, float] = {}
     main_cpu_start = time.thread_time()
     biases = BiasBoard(setup.initial_gyro_bias(), lag=PIPELINE_LAG_FRAMES)
@@ -388,7 +388,13 @@ def _build(
     last_stamp = 0
     # The frontend (and, one thread further, the decoder) runs ahead of the estimator;
     # OpenCV and the decoders release the GIL, so on two cores they overlap the backend.
-    stream = prefetch(tracked, depth=PIPELINE_LAG_FRAMES, name="slam-frontend", cpu_s=thread_cpu_s)
+    # With the estimator in a second process this thread tracks (and hands each image
+    # over): a thread of its own would only add a hand-off per image.
+    stream = (
+        tracked
+        if in_a_process
+        else prefetch(tracked, depth=PIPELINE_LAG_FRAMES, name="slam-frontend", cpu_s=thread_cpu_s)
+    )
     # These threads are the parallelism: OpenCV's own worker threads on top of them
     # took 65 s of CPU time against 48 s for the same result (one pair of runs, 40 s
     # of 960x540 video, 2 shared cores).
@@ -434,7 +440,7 @@ def _build(
     finally:
         runner.close()
     main_cpu_s = time.thread_time() - main_cpu_start
-    thread_cpu_s["slam-main" if in_a_process else "slam-estimator"] = main_cpu_s
+    thread_cpu_s["slam-frontend" if in_a_process else "slam-estimator"] = main_cpu_s
     thread_cpu_s.update(runner.cpu_seconds())
     if stabilised:
         result = gravity_and_scale(

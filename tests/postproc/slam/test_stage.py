@@ -409,9 +409,7 @@ def test_the_estimator_process_gives_the_same_result_as_in_process(
     stats = json.loads((apart / "stats.json").read_text())
     assert stats["estimator_process"] is True
     threads = stats["cpu_time_threads_s"]
-    assert {"decode", "frontend", "main", "estimator", "estimator-start", "estimator-link"} <= set(
-        threads
-    )
+    assert {"decode", "frontend", "estimator", "estimator-start", "estimator-link"} <= set(threads)
     # The worker's CPU time counts in the run's.
     assert stats["cpu_time_s"] >= threads["estimator"] + threads["estimator-start"]
     assert json.loads((inside / "stats.json").read_text())["estimator_process"] is False
