@@ -130,9 +130,9 @@ class MergeOptions:
     drift_rate_rotation_deg_per_sqrt_s / drift_rate_translation_m_per_sqrt_s: the
         prior drift rate (1 sigma per axis after one second, growing with the square
         root of time); each session's own rate is measured from the differences
-        between passes over the same target and shrunk toward this prior. The
-        rotation's is the yaw's: roll and pitch, held by gravity in a visual-inertial
-        SLAM, have none (only their measured drift counts).
+        between passes over the same target and shrunk toward this prior (toward
+        none for roll and pitch, held by gravity in a visual-inertial SLAM; a session
+        whose drift no target measured keeps this prior on all three axes).
     camera: the camchain entry that took the keyframes.
     plot: write the top and side views.
     detection: tag detection settings.
