@@ -124,9 +124,11 @@ def describe(image: Image, tracks: FrameTracks) -> tuple[IntArray, Descriptors]:
     return orb_descriptors(image, tracks.pixels)
 
 
-def use_a_process(mode: str, frames: int) -> bool:
+def use_a_process(mode: str, frames: int, *, load_average: float | None = None) -> bool:
     """Whether the stage runs its estimator in a second process: `mode` "on", "off", or
-    "auto" (at least `MIN_FRAMES` images and two cores this process may use)."""
+    "auto": at least `MIN_FRAMES` images, two cores this process may use, and one of them
+    idle (the 1-minute load average, `load_average` or the system's, at most the cores
+    less one). The choice changes only the speed, never the result."""
     if mode not in ("auto", "on", "off"):
         raise ValueError(f"estimator_process {mode!r}: expected 'auto', 'on' or 'off'")
     if mode != "auto":
@@ -134,7 +136,13 @@ def use_a_process(mode: str, frames: int) -> bool:
     if multiprocessing.current_process().daemon:
         return False  # a daemonic process may not start one
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return frames >= MIN_FRAMES and (cores or 1) >= 2
+    cores = cores or 1
+    if frames < MIN_FRAMES or cores < 2:
+        return False
+    if load_average is None:
+        load_average = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    # On busy cores the worker only adds its cost (about 3 CPU s per 40 s of video).
+    return load_average <= cores - 1
 
 
 class EstimatorRunner(Protocol):

@@ -381,17 +381,16 @@ class SlamOptions:
         turns "auto" off.
     estimator_process: run the estimator (keyframe rule, smoother, loop closure) in a
         second process ("on"), in the frontend's ("off"), or "auto": a second process
-        from 300 images on with at least two cores (postproc.slam.estimator_process).
-        Sharing a process, the estimator and the frontend's threads take turns for
-        Python's GIL; apart they can run side by side. The result is the same to the
-        bit (trajectory.tum of bench_slam --speed, handheld_a, MH01, karma). "off" by
-        default because that is what measured faster so far: on 2 cores busy with
-        other jobs (load average 4-11), 40 s of 960x540, 30 fps video took 32.5 CPU s
-        and 50.5 s in-process against 35.4 and 54.0 s apart from PNG, 30.4 / 44.2 s
-        against 33.0 / 49.8 s from H.264 (medians of 9 and 5 alternated runs): apart
-        costs about 3 CPU s more (the worker's start 0.4 s, the hand-over, the rest
-        in the threads' own time) and the busy cores leave no room to overlap. Not
-        yet measured on idle cores, where the overlap is the point.
+        from 300 images on, with at least two cores and one of them idle (1-minute load
+        average at most the cores less one; postproc.slam.estimator_process). Sharing a
+        process, the estimator and the frontend's threads take turns for Python's GIL;
+        apart they run side by side. The result is the same to the bit (trajectory.tum
+        of bench_slam --speed, handheld_a, MH01, karma); only the speed differs. 40 s of
+        960x540, 30 fps video (bench_slam --speed, runs alternated): on idle cores apart
+        took 19.1-19.7 s from PNG and 19.8-24.0 s from H.264 against 21.2-28.4 and
+        20.4-27.0 s in-process; on cores busy with other jobs (load 4-11) apart was the
+        slower, 54.0 against 50.5 s (PNG) and 49.8 against 44.2 s (H.264), medians of 9
+        and 5 runs: it costs about 3 CPU s more, and busy cores leave nothing to overlap.
     """
 
     frontend: FrontendOptions = field(default_factory=FrontendOptions)
@@ -403,4 +402,4 @@ class SlamOptions:
     max_speed_m_s: float | None = 10.0
     gyro_check: Literal["auto", "on", "off"] = "auto"
     gyro_check_options: GyroCheckOptions = field(default_factory=GyroCheckOptions)
-    estimator_process: Literal["auto", "on", "off"] = "off"
+    estimator_process: Literal["auto", "on", "off"] = "auto"
