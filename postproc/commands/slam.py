@@ -28,6 +28,7 @@ SLAM_FLAGS = [
     Flag(field="max_frames", metavar="N"),
     Flag(field="max_speed_m_s", flag="--max-speed", zero_is_none=True, metavar="M_S"),
     Flag(field="gyro_check"),
+    Flag(field="estimator_process"),
 ]
 
 

@@ -214,8 +214,11 @@ def test_the_slam_command_keeps_its_flags_and_defaults() -> None:
         gyro_check="off",
     )
     assert parse("--max-speed", "2.5").max_speed_m_s == 2.5  # type: ignore[attr-defined]
+    assert parse("--estimator-process", "on").estimator_process == "on"  # type: ignore[attr-defined]
     with pytest.raises(SystemExit):
         parse("--gyro-check", "maybe")
+    with pytest.raises(SystemExit):
+        parse("--estimator-process", "maybe")
 
 
 def test_the_dense_command_keeps_its_flags_and_defaults() -> None:
