@@ -62,9 +62,11 @@ class SlamInput:
         """Number of images (for the progress bar; 0 when the container does not say)."""
         return self.recording.frame_count or 0
 
-    def frames(self) -> Iterator[Frame]:
-        """Images in time order, as decoded (grey or BGR), PNG bytes kept as recorded."""
-        return self.recording.frames()
+    def frames(self, *, min_step_ns: int = 0) -> Iterator[Frame]:
+        """Images in time order, as decoded (grey or BGR), PNG bytes kept as recorded;
+        none closer than `min_step_ns` to the last one given (0: all), the others not
+        decoded where the recording allows (see `shared.formats.recordings`)."""
+        return self.recording.frames(min_step_ns=min_step_ns)
 
 
 def open_input(path: Path | str) -> SlamInput:

@@ -357,7 +357,7 @@ class SlamOptions:
     use_imu: use the IMU; without it the visual-only baseline runs
         (postproc.slam.visual_only): arbitrary scale, S = first keyframe's body frame
         (not gravity-aligned), no loop closure.
-    max_frames: stop after this many images (None: all); for quick looks and tests.
+    max_frames: stop after this many images used (None: all); for quick looks and tests.
     max_rate_hz: use at most this many images per second of the recording (the others
         are decoded, for the video's sake, and dropped); None: every image. For the quick
         look (`wreckmap-post run --quick`): at 10 Hz a 30 fps dive costs a third of the

@@ -375,13 +375,13 @@ def _build(
     main_cpu_start = time.thread_time()
     biases = BiasBoard(setup.initial_gyro_bias(), lag=PIPELINE_LAG_FRAMES)
     tracked = _track_frames(
-        source.frames(),
+        # (Images the rate cap drops are not even decoded where the recording allows.)
+        source.frames(min_step_ns=min_frame_step_ns(options.max_rate_hz)),
         frontend,
         imu=setup.imu,
         calibration=calibration,
         biases=biases,
         max_frames=options.max_frames,
-        min_step_ns=min_frame_step_ns(options.max_rate_hz),
         cpu_s=thread_cpu_s,
     )
     first_stamp: int | None = None
@@ -652,22 +652,21 @@ def _track_frames(
     calibration: CameraCalibration,
     biases: BiasBoard,
     max_frames: int | None,
-    min_step_ns: int,
     cpu_s: dict[str, float] | None = None,
 ) -> Iterator[TrackedFrame]:
     """Decoded and prepared (one thread ahead), then tracked images, in order, for the
     estimator.
 
-    Images closer than `min_step_ns` to the last one tracked are skipped; the first
-    `max_frames` read are taken (None: all). With `imu`, the gyro rotation since the
-    previous image seeds the tracking, less the bias `biases` gives for it.
+    The first `max_frames` of `frames` are taken (None: all). With `imu`, the gyro
+    rotation since the previous image seeds the tracking, less the bias `biases` gives
+    for it.
     """
     previous_stamp: int | None = None
     sequence = 0
     # The decoding thread also makes the frontend image (grey, resized, CLAHE): the
     # tracking thread is the longest of the three.
     decoded = prefetch(
-        _prepared(frames, frontend, max_frames=max_frames, min_step_ns=min_step_ns),
+        _prepared(frames, frontend, max_frames=max_frames),
         name="slam-decode",
         cpu_s=cpu_s,
     )
@@ -693,21 +692,12 @@ def _track_frames(
 
 
 def _prepared(
-    frames: Iterable[Frame], frontend: KltFrontend, *, max_frames: int | None, min_step_ns: int
+    frames: Iterable[Frame], frontend: KltFrontend, *, max_frames: int | None
 ) -> Iterator[tuple[Frame, Image]]:
-    """The frames to track (the first `max_frames`, none closer than `min_step_ns` to the
-    last one taken) with their frontend images."""
-    previous_stamp: int | None = None
+    """The frames to track (the first `max_frames`) with their frontend images."""
     for count, frame in enumerate(frames):
         if max_frames is not None and count >= max_frames:
             break
-        if (
-            min_step_ns
-            and previous_stamp is not None
-            and frame.stamp_ns - previous_stamp < min_step_ns
-        ):
-            continue
-        previous_stamp = frame.stamp_ns
         yield frame, frontend.prepare(frame.image)
 
 

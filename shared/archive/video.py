@@ -30,7 +30,7 @@ Only PyAV and numpy are needed (post-processing imports this; not `field`).
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -247,9 +247,18 @@ class SessionVideo:
         return stamp, key, frame
 
     def frames(
-        self, start_ns: int | None = None, end_ns: int | None = None
+        self,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        *,
+        keep: Callable[[int], bool] | None = None,
     ) -> Iterator[VideoFrame]:
-        """Decoded frames with `start_ns <= stamp_ns < end_ns` (None: no bound), in time order."""
+        """Decoded frames with `start_ns <= stamp_ns < end_ns` (None: no bound), in time order.
+
+        `keep`, called with the stamp of each frame in that span in turn, drops those it
+        is false for: they are still decoded (later frames refer to them) but not
+        converted to an image, the costlier part at our sizes.
+        """
         for index, reader in enumerate(self._readers):
             first, last = self._spans[index]
             if last < first or (end_ns is not None and first >= end_ns):
@@ -261,6 +270,8 @@ class SessionVideo:
                 if start_ns is not None and stamp < start_ns:
                     continue
                 if end_ns is not None and stamp >= end_ns:
+                    continue
+                if keep is not None and not keep(stamp):
                     continue
                 yield VideoFrame(stamp_ns=stamp, image=self._image(frame), keyframe=key)
 

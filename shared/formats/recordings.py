@@ -31,7 +31,10 @@ merged, rows out of order dropped, gyro and accelerometer rows of separate senso
 merged into one stream, each with one warning naming the file.
 
 Images are uint8 arrays as decoded (grey (H, W) or BGR (H, W, 3)), or the grey
-(H, W) luma with `grayscale=True`. A path that is no recording raises one
+(H, W) luma with `grayscale=True`. `frames(min_step_ns=...)` thins them by time (the
+first image, then each one at least that long after the last one given): image files
+and stills are then not even read or decoded, a video decodes every frame (each
+depends on the ones before) but converts only those it gives. A path that is no recording raises one
 InputError naming the path and the kinds expected.
 """
 
@@ -132,8 +135,9 @@ class Recording(Protocol):
         """Whether it holds IMU rows at all."""
         ...
 
-    def frames(self, *, grayscale: bool = False) -> Iterator[Frame]:
-        """The images in time order."""
+    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
+        """The images in time order, none closer than `min_step_ns` to the last one given
+        (0: every image)."""
         ...
 
     def imu(self) -> tuple[ImuSamples, ImuCleaning]:
@@ -151,8 +155,28 @@ def _decode(data: bytes, where: str, *, grayscale: bool) -> Image:
     return np.asarray(image)
 
 
-def _image_files(paths: list[Path], stamps_ns: list[int], grayscale: bool) -> Iterator[Frame]:
+def spaced_by(min_step_ns: int) -> Callable[[int], bool]:
+    """A test for increasing stamps (ns): true for the first, then for each one at least
+    `min_step_ns` after the last one it passed (0: for every stamp)."""
+    last: int | None = None
+
+    def keep(stamp_ns: int) -> bool:
+        nonlocal last
+        if min_step_ns > 0 and last is not None and stamp_ns - last < min_step_ns:
+            return False
+        last = stamp_ns
+        return True
+
+    return keep
+
+
+def _image_files(
+    paths: list[Path], stamps_ns: list[int], grayscale: bool, min_step_ns: int
+) -> Iterator[Frame]:
+    keep = spaced_by(min_step_ns)
     for index, (path, stamp) in enumerate(zip(paths, stamps_ns, strict=True)):
+        if not keep(int(stamp)):
+            continue
         try:
             encoded = path.read_bytes()
         except OSError as error:
@@ -215,9 +239,9 @@ class EurocRecording:
     def has_imu(self) -> bool:
         return (self._mav / "imu0" / "data.csv").is_file()
 
-    def frames(self, *, grayscale: bool = False) -> Iterator[Frame]:
+    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
         stamps = self._data.image_stamps_ns.tolist()
-        yield from _image_files(self._data.image_paths, stamps, grayscale)
+        yield from _image_files(self._data.image_paths, stamps, grayscale, min_step_ns)
 
     def imu(self) -> tuple[ImuSamples, ImuCleaning]:
         where = f"{self.path}: mav0/imu0/data.csv"
@@ -311,22 +335,31 @@ class SessionRecording:
     def has_imu(self) -> bool:
         return self._schemas.get(self.imu_topic) == _IMU_SCHEMA
 
-    def frames(self, *, grayscale: bool = False) -> Iterator[Frame]:
+    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
         if self.camera_topic not in self._schemas:
             raise self._no_camera()
         if self._schemas[self.camera_topic] == _VIDEO_SCHEMA:
             from shared.archive.video import SessionVideo
 
+            spaced = spaced_by(min_step_ns)
+            index = -1  # of the last frame `keep` was asked about: the one given next
+
+            def keep(stamp_ns: int) -> bool:
+                nonlocal index
+                index += 1
+                return spaced(stamp_ns)
+
             with SessionVideo(self.path, topic=self.camera_topic, grayscale=grayscale) as video:
-                for index, frame in enumerate(video.frames()):
+                for frame in video.frames(keep=keep):
                     yield Frame(index, frame.stamp_ns, frame.image)
             return
-        yield from self._stills(grayscale)
+        yield from self._stills(grayscale, min_step_ns)
 
-    def _stills(self, grayscale: bool) -> Iterator[Frame]:
+    def _stills(self, grayscale: bool, min_step_ns: int) -> Iterator[Frame]:
         from shared.archive import ArchiveReader, CompressedImage
 
-        index = 0
+        index = -1
+        keep = spaced_by(min_step_ns)
         for archive in self.archives:
             with ArchiveReader(archive) as reader:
                 for _, _, message in reader.messages([self.camera_topic]):
@@ -336,6 +369,9 @@ class SessionRecording:
                             f"{self._schemas[self.camera_topic]}, not CompressedVideo or "
                             "CompressedImage"
                         )
+                    index += 1
+                    if not keep(message.stamp_ns):
+                        continue
                     where = (
                         f"{archive}: {self.camera_topic} at {message.stamp_ns} ns "
                         f"({message.format!r} image)"
@@ -343,7 +379,6 @@ class SessionRecording:
                     image = _decode(message.data, where, grayscale=grayscale)
                     png = message.data if message.format.lower() == "png" else None
                     yield Frame(index, message.stamp_ns, image, png)
-                    index += 1
 
     def imu(self) -> tuple[ImuSamples, ImuCleaning]:
         from shared.archive import ArchiveReader
@@ -420,8 +455,8 @@ class ImageFolderRecording(_NoImu):
     def frame_count(self) -> int | None:
         return len(self.files)
 
-    def frames(self, *, grayscale: bool = False) -> Iterator[Frame]:
-        yield from _image_files(self.files, self.stamps_ns, grayscale)
+    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
+        yield from _image_files(self.files, self.stamps_ns, grayscale, min_step_ns)
 
 
 class VideoFileRecording(_NoImu):
@@ -439,7 +474,7 @@ class VideoFileRecording(_NoImu):
         except (av.error.FFmpegError, IndexError):
             raise InputError(f"{self.path}: no video stream PyAV can open") from None
 
-    def frames(self, *, grayscale: bool = False) -> Iterator[Frame]:
+    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
         import av
 
         try:
@@ -452,11 +487,14 @@ class VideoFileRecording(_NoImu):
             stream = container.streams.video[0]
             first: int | None = None
             fmt = "gray" if grayscale else "bgr24"
+            keep = spaced_by(min_step_ns)
             for index, frame in enumerate(container.decode(stream)):
                 if frame.pts is None or frame.time_base is None:
                     raise InputError(f"{self.path}: frame {index} has no time stamp")
                 stamp = round(frame.pts * frame.time_base * NS_PER_S)
                 first = stamp if first is None else first
+                if not keep(int(stamp - first)):
+                    continue
                 image = np.asarray(frame.to_ndarray(format=fmt), dtype=np.uint8)
                 yield Frame(index, int(stamp - first), image)
 

@@ -18,6 +18,7 @@ from shared.formats.recordings import (
     RECORDING_KINDS,
     open_recording,
     recording_kind,
+    spaced_by,
 )
 
 T0_NS = 1_700_000_000_000_000_000
@@ -195,6 +196,53 @@ def test_an_image_folder_and_a_video_file(tmp_path: Path) -> None:
     assert [f.stamp_ns for f in colour] == [k * 250_000_000 for k in range(5)]
     assert colour[0].image.shape == (24, 32, 3)
     assert next(clip.frames(grayscale=True)).image.shape == (24, 32)
+
+
+def test_spaced_by_keeps_the_first_stamp_then_each_one_a_step_after_the_last_kept() -> None:
+    keep = spaced_by(60)
+    assert [t for t in (0, 33, 66, 100, 133, 190, 200, 250) if keep(t)] == [0, 66, 133, 200]
+    every = spaced_by(0)
+    assert all(every(t) for t in (5, 5, 6))
+
+
+def test_thinned_frames_are_not_read_or_decoded_and_keep_their_index(tmp_path: Path) -> None:
+    import av
+
+    step = 90_000_000  # of 50 ms apart: every other image
+    with EurocWriter(tmp_path / "euroc", camera=_camera()) as writer:
+        for k in range(6):
+            writer.add_image(T0_NS + k * 50_000_000, _image(k))
+    # A file the thinning skips is never read: a broken one there goes unnoticed.
+    broken = sorted((tmp_path / "euroc" / "mav0" / "cam0" / "data").iterdir())[3]
+    broken.write_bytes(b"not an image")
+    euroc = open_recording(tmp_path / "euroc")
+    frames = list(euroc.frames(min_step_ns=step))
+    assert [f.index for f in frames] == [0, 2, 4]
+    assert [f.stamp_ns for f in frames] == [T0_NS + k * 50_000_000 for k in (0, 2, 4)]
+    np.testing.assert_array_equal(frames[2].image, _image(4))
+    with pytest.raises(InputError, match="cannot be read as an image"):
+        list(euroc.frames())
+    # Stills in a session: the same.
+    session = open_recording(_session(tmp_path / "s", imu_rows=[], images=5))
+    stills = list(session.frames(min_step_ns=step))
+    assert [f.index for f in stills] == [0, 2, 4]
+    np.testing.assert_array_equal(stills[1].image, _image(2))
+    assert stills[1].encoded_png == _png(2)
+    # A video file decodes every frame but gives only the kept ones.
+    video = tmp_path / "clip.mp4"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("mpeg4", rate=20)
+        stream.width, stream.height = 32, 24
+        stream.pix_fmt = "yuv420p"
+        for k in range(6):
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(_image(k), format="bgr24")))
+        container.mux(stream.encode(None))
+    clip = open_recording(video)
+    every = list(clip.frames())
+    kept = list(clip.frames(min_step_ns=step))
+    assert [f.index for f in kept] == [0, 2, 4]
+    assert [f.stamp_ns for f in kept] == [every[i].stamp_ns for i in (0, 2, 4)]
+    np.testing.assert_array_equal(kept[1].image, every[2].image)
 
 
 def test_a_path_that_is_no_recording_names_the_kinds(tmp_path: Path) -> None:

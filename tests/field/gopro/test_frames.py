@@ -210,3 +210,23 @@ def test_damaged_packet_is_skipped_and_counted(imported: tuple[Path, Path], tmp_
         count = good.frame_count
     assert count - 2 <= len(frames) < count
     assert video.skipped_packets == 1
+
+
+def test_a_thinned_session_gives_the_kept_frames_with_their_own_index_and_pixels(
+    imported: tuple[Path, Path],
+) -> None:
+    from shared.formats.recordings import open_recording, spaced_by
+
+    _, session = imported
+    recording = open_recording(session)
+    every = list(recording.frames(grayscale=True))
+    step_ns = 60_000_000  # 30 fps: every other frame
+    keep = spaced_by(step_ns)
+    expected = [f for f in every if keep(f.stamp_ns)]
+    thinned = list(recording.frames(grayscale=True, min_step_ns=step_ns))
+    assert len(every) / 2 - 1 <= len(thinned) <= len(every) / 2 + 1
+    assert [f.index for f in thinned] == [f.index for f in expected]
+    assert [f.stamp_ns for f in thinned] == [f.stamp_ns for f in expected]
+    assert np.all(np.diff([f.stamp_ns for f in thinned]) >= step_ns)
+    for position in (0, 1, len(thinned) // 2, len(thinned) - 1):
+        assert np.array_equal(thinned[position].image, expected[position].image)
