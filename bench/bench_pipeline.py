@@ -406,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{peak_long:>9.0f} {peak_short:>10.0f}"
         )
     print(f"{'total':<8} {total:>9.1f} {total / video_h:>12.0f} {'':>6} {total_45:>14.0f}")
-    print(f"45-minute dive, slam to mesh: {total_45 / 3600:.2f} h (goal < 3 h)")
+    print(f"45-minute dive, import to mesh: {total_45 / 3600:.2f} h (goal <= 1 h)")
     print(f"load average now: {os.getloadavg()[0]:.1f} (2-core machine: timings rise with it)")
     missing = [s for s in stages if not isinstance(results[0].get(s, 0.0), float)]
     print("stages not finished or not built: " + (", ".join(missing) or "none"))

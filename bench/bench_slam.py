@@ -306,6 +306,7 @@ def speed(
     seed: int,
     inputs: list[str],
     estimator_process: Literal["auto", "on", "off"] | None = None,
+    max_rate_hz: float | None = None,
 ) -> None:
     """Real-time factor of the stage at its defaults on one rendered 960x540, 30 fps
     session (the size and rate of issue #23), from its EuRoC copy (PNG images) and from
@@ -345,7 +346,7 @@ def speed(
             # EuRoC copy's (the same images, in the same order).
             clock_ns = _first_frame_ns(euroc) - _first_frame_ns(recording)
         out = work / f"slam_{survey.name}_speed_{kind}"
-        options = SlamOptions()
+        options = SlamOptions(max_rate_hz=max_rate_hz)
         if estimator_process is not None:
             options.estimator_process = estimator_process
         run_slam(options, recording, out, overwrite=True)
@@ -560,7 +561,9 @@ def _path_m(positions: FloatArray) -> float:
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
 
 
-def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict[str, object]:
+def run_real(
+    recording: RealRecording, work: Path, *, width: int | None, max_rate_hz: float | None = None
+) -> dict[str, object]:
     """slam (the stage's `run`), then the consistency figures; a failure is a row."""
     from postproc.slam.inputs import open_input
 
@@ -570,7 +573,7 @@ def run_real(recording: RealRecording, work: Path, *, width: int | None) -> dict
         row["images"] = open_input(source).frame_count
         out = work / f"slam_{recording.name}"
         frontend = FrontendOptions() if width is None else FrontendOptions(width_px=width)
-        options = SlamOptions(frontend=frontend, use_imu=recording.use_imu)
+        options = SlamOptions(frontend=frontend, use_imu=recording.use_imu, max_rate_hz=max_rate_hz)
         started = time.monotonic()
         run_slam(options, source, out, overwrite=True)
         row["run_s"] = time.monotonic() - started
@@ -679,7 +682,9 @@ def _format_real(row: dict[str, object]) -> str:
     return text
 
 
-def real(work: Path, *, width: int | None, only: list[str] | None) -> None:
+def real(
+    work: Path, *, width: int | None, only: list[str] | None, max_rate_hz: float | None = None
+) -> None:
     """The consistency table over every real recording (see the module docstring)."""
     print(
         f"-- real recordings (../shared/data), frontend width "
@@ -690,7 +695,7 @@ def real(work: Path, *, width: int | None, only: list[str] | None) -> None:
     for recording in real_recordings(SHARED_DATA):
         if only and recording.name not in only:
             continue
-        row = run_real(recording, work / "real", width=width)
+        row = run_real(recording, work / "real", width=width, max_rate_hz=max_rate_hz)
         print(_format_real(row), flush=True)
 
 
@@ -727,6 +732,11 @@ def main() -> None:
         help="with --speed: SlamOptions.estimator_process (default: the stage's default)",
     )
     parser.add_argument(
+        "--max-rate-hz",
+        type=float,
+        help="with --speed or --real: SlamOptions.max_rate_hz (default: the stage's default)",
+    )
+    parser.add_argument(
         "--only", nargs="*", help="with --real: these recordings (handheld_a, karma, ...)"
     )
     parser.add_argument("--long-minutes", type=float, default=45.0)
@@ -744,11 +754,12 @@ def main() -> None:
             seed=args.seed,
             inputs=args.speed_inputs,
             estimator_process=args.estimator_process,
+            max_rate_hz=args.max_rate_hz,
         )
         return
     if args.real:
         width = args.width if "--width" in sys.argv else None
-        real(args.work, width=width, only=args.only)
+        real(args.work, width=width, only=args.only, max_rate_hz=args.max_rate_hz)
         return
     args.work.mkdir(parents=True, exist_ok=True)
     feature_level(args.duration, [0, 1, 2])
