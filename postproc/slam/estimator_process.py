@@ -47,6 +47,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
+from pathlib import Path
 from typing import Any, Protocol
 
 import cv2
@@ -124,11 +125,12 @@ def describe(image: Image, tracks: FrameTracks) -> tuple[IntArray, Descriptors]:
     return orb_descriptors(image, tracks.pixels)
 
 
-def use_a_process(mode: str, frames: int, *, load_average: float | None = None) -> bool:
+def use_a_process(mode: str, frames: int, *, busy_cores: float | None = None) -> bool:
     """Whether the stage runs its estimator in a second process: `mode` "on", "off", or
     "auto": at least `MIN_FRAMES` images, two cores this process may use, and one of them
-    idle (the 1-minute load average, `load_average` or the system's, at most the cores
-    less one). The choice changes only the speed, never the result."""
+    idle (`busy_cores`, else the cores busy now by `busy_cores_now`, else the 1-minute
+    load average, at most the cores less one). The choice changes only the speed, never
+    the result."""
     if mode not in ("auto", "on", "off"):
         raise ValueError(f"estimator_process {mode!r}: expected 'auto', 'on' or 'off'")
     if mode != "auto":
@@ -139,10 +141,66 @@ def use_a_process(mode: str, frames: int, *, load_average: float | None = None) 
     cores = cores or 1
     if frames < MIN_FRAMES or cores < 2:
         return False
-    if load_average is None:
-        load_average = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    if busy_cores is None:
+        busy_cores = busy_cores_now()
+    if busy_cores is None:
+        busy_cores = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
     # On busy cores the worker only adds its cost (about 3 CPU s per 40 s of video).
-    return load_average <= cores - 1
+    return busy_cores <= cores - 1
+
+
+#: How long `busy_cores_now` watches the CPUs.
+BUSY_WINDOW_S = 0.5
+
+
+def busy_cores_now(window_s: float = BUSY_WINDOW_S) -> float | None:
+    """Cores busy over the next `window_s` seconds, from the kernel's CPU counters
+    (/proc/stat); None where there are none to read.
+
+    The 1-minute load average lags: just after another job it still counts that job's
+    cores for a minute or more, while a SLAM run lasts minutes to hours.
+    """
+    try:
+        before = _read_proc_stat()
+        time.sleep(window_s)
+        after = _read_proc_stat()
+    except OSError:
+        return None
+    return busy_cores_between(before, after)
+
+
+def _read_proc_stat() -> str:
+    return Path("/proc/stat").read_text(encoding="ascii")
+
+
+def busy_cores_between(before: str, after: str) -> float | None:
+    """Cores busy between two readings of /proc/stat (its "cpu" line: user, nice, system,
+    idle, iowait, irq, softirq, steal, ... in clock ticks; idle and iowait are idle), as
+    busy ticks over all ticks times the CPUs its "cpuN" lines count. None when a reading
+    has no "cpu" line or no tick went by."""
+
+    def totals(text: str) -> tuple[int, int, int] | None:
+        cpus = 0
+        line = None
+        for row in text.splitlines():
+            if row.startswith("cpu "):
+                line = row
+            elif row.startswith("cpu") and row[3:4].isdigit():
+                cpus += 1
+        if line is None:
+            return None
+        ticks = [int(v) for v in line.split()[1:9]]
+        idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0)
+        return sum(ticks), idle, cpus
+
+    first, second = totals(before), totals(after)
+    if first is None or second is None:
+        return None
+    elapsed = second[0] - first[0]
+    if elapsed <= 0:
+        return None
+    busy = elapsed - (second[1] - first[1])
+    return max(second[2], 1) * busy / elapsed
 
 
 class EstimatorRunner(Protocol):

@@ -381,8 +381,9 @@ class SlamOptions:
         turns "auto" off.
     estimator_process: run the estimator (keyframe rule, smoother, loop closure) in a
         second process ("on"), in the frontend's ("off"), or "auto": a second process
-        from 300 images on, with at least two cores and one of them idle (1-minute load
-        average at most the cores less one; postproc.slam.estimator_process). Sharing a
+        from 300 images on, with at least two cores and one of them idle (the cores busy
+        over half a second at the start, from the kernel's CPU counters, at most the
+        cores less one; postproc.slam.estimator_process). Sharing a
         process, the estimator and the frontend's threads take turns for Python's GIL;
         apart they run side by side. The result is the same to the bit (trajectory.tum
         of bench_slam --speed, handheld_a, MH01, karma); only the speed differs. 40 s of

@@ -490,15 +490,37 @@ def test_auto_runs_the_estimator_apart_only_for_long_inputs_on_a_free_core() -> 
     from postproc.slam.estimator_process import MIN_FRAMES, use_a_process
 
     two_cores = len(os.sched_getaffinity(0)) >= 2
-    assert not use_a_process("auto", MIN_FRAMES - 1, load_average=0.0)
-    assert use_a_process("auto", MIN_FRAMES, load_average=0.0) == two_cores
+    assert not use_a_process("auto", MIN_FRAMES - 1, busy_cores=0.0)
+    assert use_a_process("auto", MIN_FRAMES, busy_cores=0.0) == two_cores
     # Every core busy with other work: the worker would only add its cost.
     cores = len(os.sched_getaffinity(0))
-    assert not use_a_process("auto", MIN_FRAMES, load_average=float(cores))
-    assert not use_a_process("auto", 10**6, load_average=cores - 0.5)
+    assert not use_a_process("auto", MIN_FRAMES, busy_cores=float(cores))
+    assert not use_a_process("auto", 10**6, busy_cores=cores - 0.5)
     assert use_a_process("on", 1) and not use_a_process("off", 10**6)
     with pytest.raises(ValueError, match="estimator_process 'yes'"):
         use_a_process("yes", 10)
+
+
+def test_busy_cores_come_from_the_cpu_counters_not_the_lagging_load_average() -> None:
+    from postproc.slam.estimator_process import busy_cores_between, busy_cores_now
+
+    def stat(user: int, idle: int, iowait: int) -> str:
+        # user nice system idle iowait irq softirq steal guest guest_nice, then 2 CPUs
+        return (
+            f"cpu  {user} 0 0 {idle} {iowait} 0 0 0 0 0\n"
+            "cpu0 1 0 0 1 0 0 0 0 0 0\ncpu1 1 0 0 1 0 0 0 0 0 0\nintr 5\n"
+        )
+
+    # 100 ticks went by on 2 CPUs: 60 busy, 30 idle, 10 waiting on I/O (idle too).
+    assert busy_cores_between(stat(1000, 500, 50), stat(1060, 530, 60)) == pytest.approx(1.2)
+    assert busy_cores_between(stat(1000, 500, 50), stat(1000, 600, 50)) == 0.0
+    assert busy_cores_between(stat(1, 1, 1), stat(1, 1, 1)) is None  # no tick went by
+    assert busy_cores_between("intr 5\n", stat(1, 1, 1)) is None
+    busy = busy_cores_now(0.05)
+    if Path("/proc/stat").exists():
+        assert busy is not None and 0.0 <= busy <= (os.cpu_count() or 1) + 1e-9
+    else:
+        assert busy is None
 
 
 CTRL_C_SCRIPT = """
