@@ -341,11 +341,11 @@ def one_map_support(
     from postproc.dense.stage import pair_support
 
     visible = read_fusion_visibility(dense.fused_visibility)
-    weak = np.flatnonzero([len(x) < min_images for x in visible])
+    weak = np.flatnonzero(visible.counts < min_images)
     if not len(weak):
         return []
     support = pair_support(
-        fused_m[weak], [visible[i] for i in weak], DenseWorkspace(dense.workspace), views
+        fused_m[weak], visible.subset(weak), DenseWorkspace(dense.workspace), views
     )
     lines = [
         f"points of fewer than {min_images} depth maps: {len(weak)} of {len(visible)} "

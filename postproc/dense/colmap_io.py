@@ -11,6 +11,8 @@ y down, z forward), pointing towards the camera.
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -197,12 +199,61 @@ def read_pinhole_views(model_dir: Path | str) -> list[PinholeView]:
     return views
 
 
-def read_fusion_visibility(path: Path | str) -> list[npt.NDArray[np.uint32]]:
+@dataclass(frozen=True)
+class FusionVisibility:
+    """The images each fused point came from, packed: point i's image indices are
+    `images[offsets[i]:offsets[i + 1]]`. Reads like a list of arrays (`len`, `[i]`,
+    iteration) without one array object a point (20 million points on a 10-minute dive).
+    """
+
+    offsets: npt.NDArray[np.int64]
+    images: npt.NDArray[np.uint32]
+
+    @classmethod
+    def from_lists(
+        cls, per_point: list[list[int]] | list[npt.NDArray[np.uint32]]
+    ) -> FusionVisibility:
+        """Packed from one list (or array) of image indices a point."""
+        counts = np.array([len(images) for images in per_point], np.int64)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        flat = [int(k) for images in per_point for k in images]
+        return cls(offsets, np.asarray(flat, np.uint32).reshape(-1))
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def __getitem__(self, index: int) -> npt.NDArray[np.uint32]:
+        return self.images[self.offsets[index] : self.offsets[index + 1]]
+
+    def __iter__(self) -> Iterator[npt.NDArray[np.uint32]]:
+        for index in range(len(self)):
+            yield self[index]
+
+    @property
+    def counts(self) -> npt.NDArray[np.int64]:
+        """Images per point."""
+        return np.diff(self.offsets)
+
+    def subset(self, points: npt.NDArray[np.int64]) -> FusionVisibility:
+        """The entries of `points` (indices), in that order."""
+        counts = self.counts[points]
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        starts = np.repeat(self.offsets[:-1][points] - offsets[:-1], counts)
+        return FusionVisibility(offsets, self.images[starts + np.arange(offsets[-1])])
+
+    def point_of_each_image(self) -> npt.NDArray[np.int64]:
+        """For each entry of `images`, the point it belongs to."""
+        return np.repeat(np.arange(len(self), dtype=np.int64), self.counts)
+
+
+def read_fusion_visibility(path: Path | str) -> FusionVisibility:
     """The `fused.ply.vis` file of COLMAP's fusion: for each fused point, the indices (in
     the workspace model's registered-image order) of the images it was fused from.
 
     Layout: uint64 point count, then per point a uint32 count and that many uint32 indices.
     """
+    from array import array
+
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no fusion visibility file")
@@ -211,19 +262,30 @@ def read_fusion_visibility(path: Path | str) -> list[npt.NDArray[np.uint32]]:
         raise InputError(f"{path}: not a fusion visibility file (bad size {len(data)})")
     count = int(np.frombuffer(data, "<u8", 1)[0])
     values = np.frombuffer(data, "<u4", offset=8)
-    result: list[npt.NDArray[np.uint32]] = []
-    i = 0
-    for _ in range(count):
-        if i >= len(values):
-            raise InputError(f"{path}: truncated after {len(result)} of {count} points")
-        k = int(values[i])
-        if i + 1 + k > len(values):
-            raise InputError(f"{path}: truncated in point {len(result)} of {count}")
-        result.append(values[i + 1 : i + 1 + k].copy())
-        i += 1 + k
-    if i != len(values):
-        raise InputError(f"{path}: {len(values) - i} values past the last point")
-    return result
+    # Where each point's count sits is known only by walking them: a plain loop over an
+    # array of Python ints (4 s for 20 million points), keeping positions, not objects.
+    words = array("I")
+    words.frombytes(data[8:])
+    if sys.byteorder != "little":
+        words.byteswap()
+    heads = array("q")
+    at, size = 0, len(words)
+    for point in range(count):
+        if at >= size:
+            raise InputError(f"{path}: truncated after {point} of {count} points")
+        heads.append(at)
+        at += 1 + words[at]
+    if at > size:
+        raise InputError(f"{path}: truncated in point {count - 1} of {count}")
+    if at != size:
+        raise InputError(f"{path}: {size - at} values past the last point")
+    del words
+    head = np.frombuffer(heads, np.int64)
+    counts = values[head].astype(np.int64)
+    is_image = np.ones(len(values), bool)
+    is_image[head] = False
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return FusionVisibility(offsets, values[is_image].copy())
 
 
 def write_known_pose_model(

@@ -25,7 +25,7 @@ from postproc.dense.options import ColourOptions as ColourOptions
 from shared.errors import StageError
 
 if TYPE_CHECKING:
-    from postproc.dense.colmap_io import PinholeView
+    from postproc.dense.colmap_io import FusionVisibility, PinholeView
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -130,14 +130,16 @@ def correct_colours(
 
 
 def point_ranges_m(
-    points_m: FloatArray, visibility: list[npt.NDArray[np.uint32]], centres_m: FloatArray
+    points_m: FloatArray, visibility: FusionVisibility, centres_m: FloatArray
 ) -> FloatArray:
-    """Mean distance (m) from each point to the cameras it was fused from."""
-    ranges = np.full(len(points_m), np.nan)
-    for i, seen in enumerate(visibility):
-        if len(seen):
-            ranges[i] = float(np.linalg.norm(centres_m[seen] - points_m[i], axis=1).mean())
-    return ranges
+    """Mean distance (m) from each point to the cameras it was fused from (NaN for a
+    point of none)."""
+    owners = visibility.point_of_each_image()
+    distances = np.linalg.norm(centres_m[visibility.images] - points_m[owners], axis=1)
+    counts = visibility.counts
+    sums = np.bincount(owners, weights=distances, minlength=len(counts))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
 
 
 def correct_fused(

@@ -41,7 +41,13 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from postproc.dense.colmap_io import DenseWorkspace, PinholeView, read_array, write_array
+from postproc.dense.colmap_io import (
+    DenseWorkspace,
+    FusionVisibility,
+    PinholeView,
+    read_array,
+    write_array,
+)
 from postproc.dense.options import DenseOptions as DenseOptions
 from postproc.dense.stereo_cpu import CpuStereoOptions
 from shared.errors import InputError, StageError
@@ -556,7 +562,7 @@ def supported_points(
 
     cloud = read_ply(fused_ply)
     visible = read_fusion_visibility(visibility)
-    keep = np.array([len(v) >= min_images for v in visible], bool)
+    keep = visible.counts >= min_images
     if len(keep) != len(cloud.vertices):
         raise InputError(
             f"{visibility}: {len(keep)} points, but {fused_ply} has {len(cloud.vertices)}"
@@ -574,7 +580,7 @@ def supported_points(
     if min_pairs > 0 and len(weak):
         if workspace is None or views is None:
             raise ValueError("the pair-support rule needs the workspace and its views")
-        support = pair_support(cloud.vertices[weak], [visible[i] for i in weak], workspace, views)
+        support = pair_support(cloud.vertices[weak], visible.subset(weak), workspace, views)
         extra[weak] |= support >= min_pairs
     keep |= extra
     if not keep.any():
@@ -589,25 +595,25 @@ def supported_points(
 
 def pair_support(
     points_m: npt.NDArray[np.float64],
-    visible: list[npt.NDArray[np.uint32]],
+    visible: FusionVisibility,
     workspace: DenseWorkspace,
     views: list[PinholeView],
 ) -> npt.NDArray[np.int64]:
-    """For each point (world, m) and the images it was fused from: the fewest stereo pairs
-    that agreed on its depth in any of those images' support maps, read at the point's
-    projection (the most of the 3x3 pixels around it: a fused point averages pixels); 0
-    when an image has no support map or the point falls outside it."""
+    """For each point (world, m) and the images it was fused from (`visible[i]` for
+    point i): the fewest stereo pairs that agreed on its depth in any of those images'
+    support maps, read at the point's projection (the most of the 3x3 pixels around it:
+    a fused point averages pixels); 0 when an image has no support map or the point falls
+    outside it."""
     import cv2
 
     points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     result = np.full(len(points), np.iinfo(np.int64).max, np.int64)
-    result[[len(v) == 0 for v in visible]] = 0
-    by_image: dict[int, list[int]] = {}
-    for i, images in enumerate(visible):
-        for k in images:
-            by_image.setdefault(int(k), []).append(i)
-    for k, members in by_image.items():
-        index = np.asarray(members)
+    result[visible.counts == 0] = 0
+    owners = visible.point_of_each_image()
+    order = np.argsort(visible.images, kind="stable")
+    images, starts = np.unique(visible.images[order], return_index=True)
+    for k, group in zip(images.tolist(), np.split(order, starts[1:]), strict=True):
+        index = owners[group]
         view = views[k]
         path = workspace.support_map_path(view.name)
         if not path.is_file():
@@ -624,7 +630,7 @@ def pair_support(
         inside &= (u >= 0) & (u < width) & (v >= 0) & (v < height)
         pairs = np.zeros(len(index), np.int64)
         pairs[inside] = grown[v[inside].astype(np.int64), u[inside].astype(np.int64)]
-        result[index] = np.minimum(result[index], pairs)
+        np.minimum.at(result, index, pairs)
     return result
 
 

@@ -10,6 +10,7 @@ import pytest
 
 from postproc.dense.colmap_io import (
     DenseWorkspace,
+    FusionVisibility,
     array_bytes,
     parse_array,
     read_array,
@@ -91,6 +92,15 @@ def test_fusion_visibility(tmp_path: Path) -> None:
     path.write_bytes(_vis_bytes([[0, 2], [1], [3, 4, 5]]))
     vis = read_fusion_visibility(path)
     assert [v.tolist() for v in vis] == [[0, 2], [1], [3, 4, 5]]
+    assert vis.counts.tolist() == [2, 1, 3] and vis[2].tolist() == [3, 4, 5]
+    assert vis.point_of_each_image().tolist() == [0, 0, 1, 2, 2, 2]
+    assert [v.tolist() for v in vis.subset(np.array([2, 0]))] == [[3, 4, 5], [0, 2]]
+    assert vis.subset(np.array([], np.int64)).counts.tolist() == []
+    packed = FusionVisibility.from_lists([[0, 2], [1], [3, 4, 5]])
+    assert packed.offsets.tolist() == vis.offsets.tolist()
+    assert packed.images.tolist() == vis.images.tolist()
+    path.write_bytes(_vis_bytes([[], [7]]))
+    assert [v.tolist() for v in read_fusion_visibility(path)] == [[], [7]]
     path.write_bytes(_vis_bytes([[0, 2], [1]])[:-4])
     with pytest.raises(InputError, match="truncated"):
         read_fusion_visibility(path)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from postproc.dense.colmap_io import PinholeView
+from postproc.dense.colmap_io import FusionVisibility, PinholeView
 from postproc.dense.colour import (
     ColourOptions,
     WaterEstimate,
@@ -100,8 +100,10 @@ def test_correct_fused_uses_the_visibility(tmp_path: Path) -> None:
         (rng.uniform(0, 1, 400), rng.uniform(-1, 1, 400), rng.uniform(1, 5, 400))
     )
     vis = [np.array([0, 1], np.uint32) if k % 2 else np.array([0], np.uint32) for k in range(400)]
-    ranges = point_ranges_m(points, vis, centres)
+    ranges = point_ranges_m(points, FusionVisibility.from_lists(vis), centres)
     np.testing.assert_allclose(ranges[0], np.linalg.norm(points[0]))
+    np.testing.assert_allclose(ranges[1], np.linalg.norm(points[1] - centres, axis=1).mean())
+    assert np.isnan(point_ranges_m(points[:2], FusionVisibility.from_lists([[], [0]]), centres)[0])
     t = np.exp(-np.array(BETA)[None] * ranges[:, None])
     lin = albedo * t + np.array(B)[None] * (1 - t)
     colors = np.round(255 * lin ** (1 / 2.2)).astype(np.uint8)
