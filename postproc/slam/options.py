@@ -359,7 +359,8 @@ class SlamOptions:
         (not gravity-aligned), no loop closure.
     max_frames: stop after this many images used (None: all); for quick looks and tests.
     max_rate_hz: use at most this many images per second of the recording (the others
-        are decoded, for the video's sake, and dropped); None: every image. For the quick
+        are not read where the recording allows it, and a video decodes them, for the
+        frames after them, but does not convert them); None: every image. For the quick
         look (`wreckmap-post run --quick`): at 10 Hz a 30 fps dive costs a third of the
         tracking and keyframe checks.
     min_tracks_ok: a frame with fewer tracked features counts as a tracking failure.
