@@ -530,7 +530,12 @@ from postproc.slam.frontend import KltFrontend
 from postproc.slam.stage import SlamOptions, run
 
 track = KltFrontend.track
+calls = 0
 def slow_track(self, *args, **kwargs):
+    global calls
+    calls += 1
+    if calls == 3:  # tracking, beside a started worker: the test's cue for its Ctrl-C
+        print("tracking", flush=True)
     time.sleep(0.1)  # keeps the run going until the Ctrl-C
     return track(self, *args, **kwargs)
 KltFrontend.track = slow_track
@@ -560,14 +565,17 @@ def test_ctrl_c_stops_the_stage_and_its_estimator_process(wall_euroc: Path, tmp_
     try:
         assert child.stdout is not None
         worker = int(child.stdout.readline().split()[1])
-        time.sleep(2.0)  # the worker is estimating by now
+        # Cued by the run itself, not by a fixed wait: on a loaded machine the worker's
+        # start can take seconds.
+        assert child.stdout.readline().strip() == "tracking"
+        time.sleep(0.5)  # a few images into the estimator
         os.killpg(child.pid, signal.SIGINT)  # what Ctrl-C sends: every process of the job
         _, stderr = child.communicate(timeout=60)
     finally:
         if child.poll() is None:
             os.killpg(child.pid, signal.SIGKILL)
             child.wait()
-    assert child.returncode != 0
+    assert child.returncode != 0, stderr
     assert stderr.count("KeyboardInterrupt") == 1, stderr  # the parent's, not the worker's
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline and Path(f"/proc/{worker}").exists():
