@@ -524,7 +524,10 @@ def test_busy_cores_come_from_the_cpu_counters_not_the_lagging_load_average() ->
 
 
 CTRL_C_SCRIPT = """
-import sys, time
+import signal, sys, time
+# As in a terminal's job: a test runner's worker may ignore SIGINT, and an ignored signal
+# is inherited across exec (Python then installs no KeyboardInterrupt handler).
+signal.signal(signal.SIGINT, signal.default_int_handler)
 from postproc.slam import estimator_process
 from postproc.slam.frontend import KltFrontend
 from postproc.slam.stage import SlamOptions, run
