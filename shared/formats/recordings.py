@@ -34,8 +34,8 @@ Images are uint8 arrays as decoded (grey (H, W) or BGR (H, W, 3)), or the grey
 (H, W) luma with `grayscale=True`. `frames(min_step_ns=...)` thins them by time (the
 first image, then each one at least that long after the last one given): image files
 and stills are then not even read or decoded, a video decodes every frame (each
-depends on the ones before) but converts only those it gives. A path that is no recording raises one
-InputError naming the path and the kinds expected.
+depends on the ones before) but converts only those it gives. A path that is no
+recording raises one InputError naming the path and the kinds expected.
 """
 
 from __future__ import annotations

@@ -44,6 +44,20 @@ def _camera() -> CameraCalibration:
     )
 
 
+def _clip(path: Path, *, frames: int, rate: int) -> Path:
+    """An MPEG-4 video file of `_image(0)`, `_image(1)`, ... at `rate` frames a second."""
+    import av
+
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("mpeg4", rate=rate)
+        stream.width, stream.height = 32, 24
+        stream.pix_fmt = "yuv420p"
+        for k in range(frames):
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(_image(k), format="bgr24")))
+        container.mux(stream.encode(None))
+    return path
+
+
 def _session(folder: Path, *, imu_rows: list[tuple[int, float]], images: int = 3) -> Path:
     """A session folder: `images` PNG stills 50 ms apart, IMU rows (stamp, gyro x) as given,
     split over two rotated recordings at the middle image."""
@@ -169,8 +183,6 @@ def test_an_imu_only_euroc_folder_gives_its_imu_but_no_frames(tmp_path: Path) ->
 
 
 def test_an_image_folder_and_a_video_file(tmp_path: Path) -> None:
-    import av
-
     folder = tmp_path / "stills"
     folder.mkdir()
     for k in range(3):
@@ -182,15 +194,7 @@ def test_an_image_folder_and_a_video_file(tmp_path: Path) -> None:
     assert frames[0].encoded_png is not None
     with pytest.raises(InputError, match="holds no IMU samples"):
         recording.imu()
-    video = tmp_path / "clip.mp4"
-    with av.open(str(video), "w") as container:
-        stream = container.add_stream("mpeg4", rate=4)
-        stream.width, stream.height = 32, 24
-        stream.pix_fmt = "yuv420p"
-        for k in range(5):
-            container.mux(stream.encode(av.VideoFrame.from_ndarray(_image(k), format="bgr24")))
-        container.mux(stream.encode(None))
-    clip = open_recording(video)
+    clip = open_recording(_clip(tmp_path / "clip.mp4", frames=5, rate=4))
     assert clip.kind == "video" and clip.frame_count == 5
     colour = list(clip.frames())
     assert [f.stamp_ns for f in colour] == [k * 250_000_000 for k in range(5)]
@@ -206,8 +210,6 @@ def test_spaced_by_keeps_the_first_stamp_then_each_one_a_step_after_the_last_kep
 
 
 def test_thinned_frames_are_not_read_or_decoded_and_keep_their_index(tmp_path: Path) -> None:
-    import av
-
     step = 90_000_000  # of 50 ms apart: every other image
     with EurocWriter(tmp_path / "euroc", camera=_camera()) as writer:
         for k in range(6):
@@ -229,15 +231,7 @@ def test_thinned_frames_are_not_read_or_decoded_and_keep_their_index(tmp_path: P
     np.testing.assert_array_equal(stills[1].image, _image(2))
     assert stills[1].encoded_png == _png(2)
     # A video file decodes every frame but gives only the kept ones.
-    video = tmp_path / "clip.mp4"
-    with av.open(str(video), "w") as container:
-        stream = container.add_stream("mpeg4", rate=20)
-        stream.width, stream.height = 32, 24
-        stream.pix_fmt = "yuv420p"
-        for k in range(6):
-            container.mux(stream.encode(av.VideoFrame.from_ndarray(_image(k), format="bgr24")))
-        container.mux(stream.encode(None))
-    clip = open_recording(video)
+    clip = open_recording(_clip(tmp_path / "clip.mp4", frames=6, rate=20))
     every = list(clip.frames())
     kept = list(clip.frames(min_step_ns=step))
     assert [f.index for f in kept] == [0, 2, 4]
