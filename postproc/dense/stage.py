@@ -5,8 +5,9 @@
 (`options.image_dir`, else `sfm_dir/images` or `sfm_dir/keyframes`), and writes into
 `out_dir`:
 
-- `workspace/`: COLMAP's dense workspace (undistorted `images/`, PINHOLE `sparse/`,
-  `stereo/depth_maps/<name>.geometric.bin`, `stereo/normal_maps/...`);
+- `workspace/`: COLMAP's dense workspace (PINHOLE `sparse/` of every image, undistorted
+  `images/` of those the stereo reads, `stereo/depth_maps/<name>.geometric.bin`,
+  `stereo/normal_maps/...`);
 - `fused.ply` (+ `fused.ply.vis`): COLMAP stereo fusion of the depth maps;
 - `fused_corrected.ply`: the same with underwater colour correction (when asked);
 - `fused_supported.ply`: the fused points seen in `mesh_min_images` images or more;
@@ -16,7 +17,8 @@
 Depth maps come from COLMAP PatchMatch when pycolmap was built with CUDA, else from our
 CPU stereo (`postproc.dense.stereo_cpu`). The CPU stereo computes them for reference
 views only (`ViewSelectionOptions`: dense work grows with the surveyed surface, not the
-keyframe count; every keyframe stays a stereo source), one job per reference through a
+keyframe count; every keyframe may be a stereo source, and only the references and their
+partners are undistorted), one job per reference through a
 map function (`run(..., map_fn=...)`: a process pool or Dask tasks, see
 `postproc.pipeline.parallel`), each job writing its maps atomically into the shared
 workspace.
@@ -33,6 +35,7 @@ from __future__ import annotations
 import functools
 import logging
 import shutil
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -130,6 +133,12 @@ def find_image_dir(sfm_dir: Path, names: list[str], image_dir: Path | None) -> P
 
 class DepthBackend(Protocol):
     """Writes geometric depth and normal maps for the reference images of a workspace."""
+
+    def images_needed(
+        self, options: DenseOptions, views: list[PinholeView], references: list[int]
+    ) -> list[int]:
+        """Indices (ascending) of the views whose undistorted images `run` reads."""
+        ...
 
     def run(
         self,
@@ -242,9 +251,44 @@ def compute_view_maps(job: ViewJob) -> dict[str, Any]:
     return result
 
 
+def stereo_partners(
+    options: DenseOptions, views: list[PinholeView], references: list[int]
+) -> list[list[int]]:
+    """Each reference's stereo partners among all views (`select_neighbours`: best for
+    its median sparse depth, then for its 90th percentile depth), in `references` order."""
+    from postproc.dense.views import select_neighbours
+
+    ranges = [depth_range_m(v, options.fallback_depth_range_m) for v in views]
+    typical = [scene_depth_m(v, options.fallback_depth_range_m) for v in views]
+    # Far partners are chosen for the 90th percentile depth: the far end of an oblique
+    # wall needs a longer baseline than the median depth asks for.
+    far = [
+        float(np.percentile(v.point_depths_m(), 90.0)) if len(v.point_depths_m()) else r[1]
+        for v, r in zip(views, ranges, strict=True)
+    ]
+    return select_neighbours(
+        [v.K for v in views],
+        [(v.width, v.height) for v in views],
+        [v.cam_from_world for v in views],
+        typical,
+        options.neighbours,
+        far_depths_m=far,
+        references=references,
+    )
+
+
 class CpuBackend:
     """Our SGBM stereo on neighbour pairs (`postproc.dense.stereo_cpu`), one job per
     reference image through the map function."""
+
+    def images_needed(
+        self, options: DenseOptions, views: list[PinholeView], references: list[int]
+    ) -> list[int]:
+        """The references and their stereo partners."""
+        needed = set(references)
+        for partners in stereo_partners(options, views, references):
+            needed.update(partners)
+        return sorted(needed)
 
     def run(
         self,
@@ -255,25 +299,8 @@ class CpuBackend:
         references: list[int],
         map_fn: MapFn,
     ) -> dict[str, Any]:
-        from postproc.dense.views import select_neighbours
-
         ranges = [depth_range_m(v, options.fallback_depth_range_m) for v in views]
-        typical = [scene_depth_m(v, options.fallback_depth_range_m) for v in views]
-        # Far partners are chosen for the 90th percentile depth: the far end of an oblique
-        # wall needs a longer baseline than the median depth asks for.
-        far = [
-            float(np.percentile(v.point_depths_m(), 90.0)) if len(v.point_depths_m()) else r[1]
-            for v, r in zip(views, ranges, strict=True)
-        ]
-        neighbours = select_neighbours(
-            [v.K for v in views],
-            [(v.width, v.height) for v in views],
-            [v.cam_from_world for v in views],
-            typical,
-            options.neighbours,
-            far_depths_m=far,
-            references=references,
-        )
+        neighbours = stereo_partners(options, views, references)
         jobs = []
         skipped = 0
         for k, partners in zip(references, neighbours, strict=True):
@@ -323,6 +350,12 @@ class CpuBackend:
 
 class PatchMatchBackend:
     """COLMAP's PatchMatch stereo with geometric consistency (needs pycolmap with CUDA)."""
+
+    def images_needed(
+        self, options: DenseOptions, views: list[PinholeView], references: list[int]
+    ) -> list[int]:
+        """Every view: one PatchMatch call reads them all."""
+        return list(range(len(views)))
 
     def run(
         self,
@@ -376,22 +409,67 @@ def choose_backend(requested: str, *, has_cuda: bool) -> str:
 # ----------------------------------------------------------------- the stage
 
 
-def undistort(options: DenseOptions, model_dir: Path, image_dir: Path, workspace_dir: Path) -> None:
-    """COLMAP's undistorter into `workspace_dir` (written aside, renamed when complete)."""
+def undistort(
+    options: DenseOptions,
+    model_dir: Path,
+    image_dir: Path,
+    workspace_dir: Path,
+    *,
+    image_names: list[str] | None = None,
+) -> None:
+    """COLMAP's undistorter into `workspace_dir` (written aside, renamed when complete):
+    the PINHOLE model of every registered image, and the images named in `image_names`
+    (None: every image)."""
     import pycolmap
 
     from shared.fsutil import atomic_path
 
+    if image_names is not None and not image_names:
+        raise ValueError("name at least one image (COLMAP reads an empty list as all)")
     with atomic_path(workspace_dir) as tmp:
         pycolmap.undistort_images(
             output_path=str(tmp),
             input_path=str(model_dir),
             image_path=str(image_dir),
+            image_names=list(image_names or []),
             output_type="COLMAP",
             undistort_options=pycolmap.UndistortCameraOptions(
                 max_image_size=options.max_image_size_px
             ),
         )
+
+
+def undistort_missing(
+    options: DenseOptions,
+    model_dir: Path,
+    image_dir: Path,
+    workspace: DenseWorkspace,
+    names: list[str],
+) -> int:
+    """Undistort those of `names` not yet in the workspace's images (COLMAP's undistorter
+    into a temporary folder beside it, each image then renamed into place); returns how
+    many were missing."""
+    import pycolmap
+
+    missing = [n for n in names if not (workspace.images_dir / n).is_file()]
+    if not missing:
+        return 0
+    with tempfile.TemporaryDirectory(prefix=".undistort.", dir=workspace.root.parent) as tmp:
+        pycolmap.undistort_images(
+            output_path=tmp,
+            input_path=str(model_dir),
+            image_path=str(image_dir),
+            image_names=missing,
+            output_type="COLMAP",
+            undistort_options=pycolmap.UndistortCameraOptions(
+                max_image_size=options.max_image_size_px
+            ),
+        )
+        for name in missing:
+            target = workspace.images_dir / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            (Path(tmp) / "images" / name).replace(target)
+    return len(missing)
 
 
 def run(
@@ -421,7 +499,7 @@ def run(
     stamp["backend"] = backend_name  # "auto" resolves by the machine's pycolmap
     with rebuild(folder, stamp, overwrite=overwrite, resumable=True) as work:
         if work is not None:
-            _build(options, sfm_dir, model_dir, image_dir, backend_name, work, map_fn)
+            _build(options, sfm_dir, model_dir, image_dir, names, backend_name, work, map_fn)
     return folder.mesh if options.make_mesh else folder.fused
 
 
@@ -430,6 +508,7 @@ def _build(
     sfm_dir: Path,
     model_dir: Path,
     image_dir: Path,
+    names: list[str],
     backend_name: str,
     out: DenseFolder,
     map_fn: MapFn | None,
@@ -454,20 +533,27 @@ def _build(
     }
 
     start = time.perf_counter()
+    backend = BACKENDS[backend_name]()
     if not workspace.is_undistorted():
-        # Interrupted while undistorting: start the workspace again.
+        # Interrupted while undistorting the model: start the workspace again. The CPU
+        # backend undistorts the model and one image here, the images its stereo reads
+        # below (PatchMatch reads every image of COLMAP's patch-match.cfg).
         shutil.rmtree(workspace.root, ignore_errors=True)
-        undistort(options, model_dir, image_dir, workspace.root)
-    timings["undistort_s"] = time.perf_counter() - start
+        first = names[:1] if backend_name == "cpu" else None
+        undistort(options, model_dir, image_dir, workspace.root, image_names=first)
     views = read_pinhole_views(workspace.sparse_dir)
     report["images"] = len(views)
     references = reference_views(options, views, backend_name)
     report["reference_images"] = len(references)
+    needed = backend.images_needed(options, views, references)
+    undistort_missing(options, model_dir, image_dir, workspace, [views[k].name for k in needed])
+    report["undistorted_images"] = len(needed)
+    timings["undistort_s"] = time.perf_counter() - start
 
     if map_fn is None:
         map_fn = functools.partial(serial_map, desc="depth maps", unit="image")
     start = time.perf_counter()
-    report["depth_maps"] = BACKENDS[backend_name]().run(
+    report["depth_maps"] = backend.run(
         options, workspace, views, references=references, map_fn=map_fn
     )
     timings["depth_maps_s"] = time.perf_counter() - start

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any, cast
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 import pytest
@@ -23,7 +24,15 @@ from postproc.dense.colmap_io import (
 from postproc.dense.evaluate import distance_to_mesh
 from postproc.dense.fusion import FusionOptions
 from postproc.dense.meshing import MeshingOptions
-from postproc.dense.stage import DenseOptions, choose_backend, read_depth_map, run
+from postproc.dense.stage import (
+    DenseOptions,
+    choose_backend,
+    read_depth_map,
+    run,
+    stereo_partners,
+    undistort,
+    undistort_missing,
+)
 from shared.errors import InputError, OutputExistsError, StageError
 from shared.formats.ply import read_ply
 from sim.mesh import TruthMesh, scene_mesh
@@ -99,6 +108,44 @@ def test_workspace_is_colmaps(dense_dir: Path, sfm: SyntheticSfm) -> None:
     for name in sfm.names:
         done = ws.depth_map_path(name).is_file() and ws.normal_map_path(name).is_file()
         assert done == (name in chosen)
+
+
+def test_only_the_images_the_stereo_reads_are_undistorted(
+    sfm: SyntheticSfm, tmp_path: Path
+) -> None:
+    # One partner a reference, best two cameras away (0.6 m at 2.7 m: 13 deg): the
+    # references 0, 2, 4, 6 pair among themselves, and the odd images are never read.
+    options = quick_options(make_mesh=False)
+    options.neighbours.max_neighbours = 1
+    options.neighbours.far_neighbours = 0
+    options.neighbours.best_angle_deg = 14.0
+    run(options, sfm.folder, tmp_path / "few")
+    ws = DenseWorkspace(tmp_path / "few" / "workspace")
+    views = read_pinhole_views(ws.sparse_dir)
+    assert [v.name for v in views] == sfm.names  # the model keeps every image
+    chosen = references(tmp_path / "few")
+    partners = stereo_partners(options, views, [sfm.names.index(n) for n in chosen])
+    read = set(chosen) | {views[j].name for p in partners for j in p}
+    on_disk = {p.relative_to(ws.images_dir).as_posix() for p in ws.images_dir.rglob("*.png")}
+    assert on_disk == read and len(read) < len(sfm.names)
+    report = json.loads((tmp_path / "few" / "dense.json").read_text())
+    assert report["undistorted_images"] == len(read)
+    # The same pixels as COLMAP's undistortion of every image.
+    undistort(options, sfm.folder / "sparse", sfm.folder / "images", tmp_path / "all")
+    for name in read:
+        mine = cv2.imread(str(ws.images_dir / name), cv2.IMREAD_UNCHANGED)
+        full = cv2.imread(str(tmp_path / "all" / "images" / name), cv2.IMREAD_UNCHANGED)
+        assert mine is not None and full is not None
+        assert np.array_equal(mine, full), name
+    # An image lost from the workspace is undistorted again on the next run.
+    lost = sorted(read)[0]
+    (ws.images_dir / lost).unlink()
+    assert (
+        undistort_missing(options, sfm.folder / "sparse", sfm.folder / "images", ws, sorted(read))
+        == 1
+    )
+    assert (ws.images_dir / lost).is_file()
+    assert not list((tmp_path / "few").glob(".undistort.*"))  # its temporary folder went
 
 
 def test_fusion_visibility_follows_the_workspace_order(dense_dir: Path) -> None:
