@@ -122,6 +122,9 @@ class FusionOptions:
     check_num_images: overlapping images checked per reference image.
     input_type: "geometric" (filtered maps) or "photometric".
     num_threads: worker threads (-1: all cores).
+    max_tile_pixels: valid depth pixels fused by one COLMAP call; more are fused box by
+        box (space cut so that no box holds more), which bounds memory: one call keeps
+        about 450 bytes for each point it fuses (0: always one call).
 
     min_num_pixels 2 and max_depth_error_rel 0.02 (looser than COLMAP's 5 and 0.01) were
     measured on the simulated survey (640x360, true poses): completeness at 5 cm 58.7 ->
@@ -132,15 +135,22 @@ class FusionOptions:
     (`bench_dense.py`, 960x540, 19 of 56 keyframes: accuracy / completeness at 5 cm
     99.9 / 48.9 % with 2, 97.3 / 72.1 % with 1). Every depth kept already passed the
     stereo's left-right check.
+    max_depth_error_rel back to COLMAP's 0.01 since fusion checks each reference against
+    the other references alone (`postproc.dense.fusion.references_workspace`), so that
+    references meet more often: on the 10-minute dive (`bench_pipeline.py`, fusion
+    variants scored outside the bench) the mesh at 5 cm was 96.9 / 55.6 % before, 95.9 /
+    58.9 % with 0.02 and 96.8 / 57.3 % with 0.01; `bench_dense.py` (40 s) 99.4 / 61.4 %
+    with 0.02, 99.8 / 59.4 % with 0.01.
     """
 
     min_num_pixels: int = 1
     max_reproj_error_px: float = 2.0
-    max_depth_error_rel: float = 0.02
+    max_depth_error_rel: float = 0.01
     max_normal_error_deg: float = 25.0
     check_num_images: int = 50
     input_type: Literal["geometric", "photometric"] = "geometric"
     num_threads: int = -1
+    max_tile_pixels: int = 24_000_000
 
 
 @dataclass(kw_only=True)

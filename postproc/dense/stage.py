@@ -517,7 +517,6 @@ def _build(
     from postproc.dense.colmap_io import read_pinhole_views
     from postproc.dense.fusion import fuse
     from postproc.dense.meshing import mesh
-    from shared.fsutil import write_text_atomic
 
     workspace = DenseWorkspace(out.workspace)
     fused_ply = out.fused
@@ -560,18 +559,12 @@ def _build(
 
     start = time.perf_counter()
     if not fused_ply.exists():
-        # Fusion reads the images listed in fusion.cfg: the references (the others have
-        # no depth map).
-        write_text_atomic(
-            workspace.stereo_dir / "fusion.cfg",
-            "".join(views[k].name + "\n" for k in references),
-            overwrite=True,
-        )
-        fuse(options.fusion, workspace.root, fused_ply)
+        # The references only: the others have no depth map.
+        report["fusion"] = fuse(options.fusion, workspace, views, references, fused_ply)
     timings["fusion_s"] = time.perf_counter() - start
-    from shared.formats.ply import read_ply
+    from shared.formats.ply import vertex_ply_header
 
-    report["fused_points"] = len(read_ply(fused_ply).vertices)
+    report["fused_points"] = vertex_ply_header(fused_ply)[1]
 
     mesh_input = fused_ply
     if options.colour_correction:

@@ -113,6 +113,24 @@ def read_ply(path: Path | str) -> PlyData:
     return result
 
 
+def vertex_ply_header(path: Path | str) -> tuple[list[bytes], int, int]:
+    """(header lines before `end_header`, vertex count, byte offset of the body) of a
+    PLY holding one vertex element only (a point cloud), read without its body."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such PLY file")
+    with path.open("rb") as f:
+        head = f.read(1 << 16)
+    end = head.find(b"end_header\n")
+    if not head.startswith(b"ply\n") or end < 0:
+        raise InputError(f"{path}: not a PLY file (expected 'ply' ... 'end_header')")
+    lines = head[:end].split(b"\n")[:-1] if head[:end].endswith(b"\n") else head[:end].split(b"\n")
+    elements = [ln for ln in lines if ln.startswith(b"element ")]
+    if len(elements) != 1 or not elements[0].startswith(b"element vertex "):
+        raise InputError(f"{path}: expected a point cloud (one vertex element), got {elements}")
+    return lines, int(elements[0].split()[2]), end + len(b"end_header\n")
+
+
 def ply_bytes(ply: PlyData, *, comments: Sequence[str] = ()) -> bytes:
     """Encode as binary little-endian PLY (float32 coordinates and normals, uchar colours,
     int32 triangle indices), with one `comment` line per entry of `comments`."""

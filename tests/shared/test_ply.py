@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from shared.errors import InputError, OutputExistsError
-from shared.formats.ply import PlyData, ply_bytes, read_ply, write_ply
+from shared.formats.ply import PlyData, ply_bytes, read_ply, vertex_ply_header, write_ply
 
 
 def test_ply_round_trip(tmp_path: Path) -> None:
@@ -76,3 +76,18 @@ def test_bad_ply_files(tmp_path: Path) -> None:
         read_ply(tmp_path / "b.ply")
     with pytest.raises(ValueError, match="single lines"):
         ply_bytes(PlyData(vertices=np.zeros((1, 3))), comments=["two\nlines"])
+
+
+def test_vertex_header_is_read_without_the_body(tmp_path: Path) -> None:
+    cloud = PlyData(vertices=np.zeros((7, 3)), colors=np.zeros((7, 3), np.uint8))
+    path = write_ply(tmp_path / "c.ply", cloud, comments=["frame W"])
+    lines, count, offset = vertex_ply_header(path)
+    assert count == 7
+    assert lines[0] == b"ply" and b"element vertex 7" in lines and b"end_header" not in lines
+    assert path.stat().st_size - offset == 7 * 15  # float32 x, y, z and uchar r, g, b
+    mesh = PlyData(vertices=np.zeros((3, 3)), faces=np.array([[0, 1, 2]]))
+    with pytest.raises(InputError, match="one vertex element"):
+        vertex_ply_header(write_ply(tmp_path / "m.ply", mesh))
+    (tmp_path / "x.ply").write_bytes(b"solid x\n")
+    with pytest.raises(InputError, match="not a PLY file"):
+        vertex_ply_header(tmp_path / "x.ply")

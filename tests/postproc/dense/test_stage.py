@@ -22,7 +22,7 @@ from postproc.dense.colmap_io import (
     write_known_pose_model,
 )
 from postproc.dense.evaluate import distance_to_mesh
-from postproc.dense.fusion import FusionOptions
+from postproc.dense.fusion import FusionOptions, fuse
 from postproc.dense.meshing import MeshingOptions
 from postproc.dense.stage import (
     DenseOptions,
@@ -148,13 +148,14 @@ def test_only_the_images_the_stereo_reads_are_undistorted(
     assert not list((tmp_path / "few").glob(".undistort.*"))  # its temporary folder went
 
 
-def test_fusion_visibility_follows_the_workspace_order(dense_dir: Path) -> None:
-    # Colour correction takes camera ranges from fused.ply.vis by workspace image index.
-    views = read_pinhole_views(dense_dir / "workspace" / "sparse")
-    fused = read_ply(dense_dir / "fused.ply")
-    vis = read_fusion_visibility(dense_dir / "fused.ply.vis")
+def assert_visibility_is_the_workspaces(workspace: Path, ply: Path) -> None:
+    """Each fused point projects into the images its `.vis` names (workspace order), onto
+    a depth there that agrees with it (200 points drawn)."""
+    views = read_pinhole_views(workspace / "sparse")
+    fused = read_ply(ply)
+    vis = read_fusion_visibility(ply.with_name(ply.name + ".vis"))
     assert len(vis) == len(fused.vertices)
-    depths = {n: read_depth_map(dense_dir / "workspace", n) for n in references(dense_dir)}
+    depths: dict[str, npt.NDArray[np.float32]] = {}
     rng = np.random.default_rng(0)
     for i in rng.choice(len(vis), 200, replace=False):
         for k in vis[i]:
@@ -163,10 +164,52 @@ def test_fusion_visibility_follows_the_workspace_order(dense_dir: Path) -> None:
             u, v, w = view.K @ pc
             assert w > 0 and 0 <= u / w < view.width and 0 <= v / w < view.height
             # A fused point averages pixels: one of the 3x3 around its projection made it.
+            if view.name not in depths:
+                depths[view.name] = read_depth_map(workspace, view.name)
             depth = depths[view.name]
             r, c = int(v / w), int(u / w)
             patch = depth[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2]
             assert np.any(np.abs(patch - pc[2]) < 0.03 * pc[2])
+
+
+def test_fusion_visibility_follows_the_workspace_order(dense_dir: Path) -> None:
+    # Colour correction takes camera ranges from fused.ply.vis by workspace image index.
+    assert_visibility_is_the_workspaces(dense_dir / "workspace", dense_dir / "fused.ply")
+
+
+def test_fusion_box_by_box_gives_the_cloud_of_one_call(dense_dir: Path, tmp_path: Path) -> None:
+    ws = DenseWorkspace(dense_dir / "workspace")
+    views = read_pinhole_views(ws.sparse_dir)
+    chosen = references(dense_dir)
+    refs = [k for k, v in enumerate(views) if v.name in chosen]
+    one = fuse(
+        FusionOptions(num_threads=1, max_tile_pixels=0), ws, views, refs, tmp_path / "one.ply"
+    )
+    assert one["tiles"] == 1
+    budget = one["depth_pixels"] // 3
+    boxes = fuse(
+        FusionOptions(num_threads=1, max_tile_pixels=budget),
+        ws,
+        views,
+        refs,
+        tmp_path / "boxes.ply",
+    )
+    assert boxes["tiles"] >= 3 and boxes["depth_pixels"] == one["depth_pixels"]
+    # Pixels fused across a cut become two points: a few more points, on the same surface.
+    a = read_ply(tmp_path / "one.ply").vertices
+    b = read_ply(tmp_path / "boxes.ply").vertices
+    assert len(b) == boxes["points"] and len(a) == one["points"]
+    print(len(a), len(b))
+    assert len(a) <= len(b) < 1.05 * len(a)
+    from scipy.spatial import cKDTree
+
+    assert np.mean(cKDTree(a).query(b)[0] < 0.005) > 0.99
+    assert np.mean(cKDTree(b).query(a)[0] < 0.005) > 0.99
+    assert_visibility_is_the_workspaces(ws.root, tmp_path / "boxes.ply")
+    assert references(dense_dir) == chosen  # the workspace's fusion.cfg is as it was
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["one.ply", "one.ply.vis", "boxes.ply", "boxes.ply.vis"]
+    )
 
 
 def test_finished_run_is_not_redone(dense_dir: Path, sfm: SyntheticSfm) -> None:
