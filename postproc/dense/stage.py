@@ -8,7 +8,8 @@
 - `workspace/`: COLMAP's dense workspace (PINHOLE `sparse/` of every image, undistorted
   `images/` of those the stereo reads, `stereo/depth_maps/<name>.geometric.bin`,
   `stereo/normal_maps/...`);
-- `fused.ply` (+ `fused.ply.vis`): COLMAP stereo fusion of the depth maps;
+- `fused.ply` (+ `fused.ply.vis`): COLMAP stereo fusion of the depth maps, box by box
+  over the reference views' model (`postproc.dense.fusion`);
 - `fused_corrected.ply`: the same with underwater colour correction (when asked);
 - `fused_supported.ply`: the fused points seen in `mesh_min_images` images or more;
 - `mesh.ply`: screened Poisson mesh of those, octree depth from the scene, trimmed;
