@@ -70,14 +70,14 @@ def fuse(
         fusion_ws = DenseWorkspace(Path(tmp) / "workspace")
         full_index = references_workspace(workspace, views, references, fusion_ws)
         parts: list[Path] = []
+        # A map whose few pixels in a box fell between samples still counts for the box.
+        margin = 0.01 * float(np.linalg.norm(np.ptp(samples, axis=0))) if len(samples) else 0.0
         tiles = enumerate(boxes)
         for t, box in progress(tiles, total=len(boxes), desc="fusion", unit="tile"):
             if len(boxes) == 1:
                 chosen = list(references)
             else:
-                # The references with a sampled pixel in the box (or near it: a map whose
-                # few pixels there fell between samples).
-                margin = 0.01 * float(np.linalg.norm(np.ptp(samples, axis=0)))
+                # The references with a sampled pixel in the box or within the margin.
                 hit = np.unique(owners[box.contains(samples, margin_m=margin)])
                 chosen = [references[int(i)] for i in hit]
             report["images_per_tile"].append(len(chosen))
@@ -124,10 +124,13 @@ def references_workspace(
 
     rec = pycolmap.Reconstruction(str(workspace.sparse_dir))
     keep = {views[k].name for k in references}
-    for image_id in list(rec.reg_image_ids()):
-        image = rec.images[image_id]
-        if image.name not in keep:
-            rec.deregister_frame(image.frame_id)
+    # A rig's frame holds several images: it stays when any of them is a reference.
+    frames = {rec.images[i].frame_id for i in rec.reg_image_ids()}
+    kept_frames = {
+        rec.images[i].frame_id for i in rec.reg_image_ids() if rec.images[i].name in keep
+    }
+    for frame_id in sorted(frames - kept_frames):
+        rec.deregister_frame(frame_id)
     out.sparse_dir.mkdir(parents=True)
     rec.write(str(out.sparse_dir))
     (out.stereo_dir).mkdir(parents=True)
