@@ -11,6 +11,7 @@ y down, z forward), pointing towards the camera.
 
 from __future__ import annotations
 
+import struct
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -244,6 +245,17 @@ class FusionVisibility:
     def point_of_each_image(self) -> npt.NDArray[np.int64]:
         """For each entry of `images`, the point it belongs to."""
         return np.repeat(np.arange(len(self), dtype=np.int64), self.counts)
+
+    def to_bytes(self) -> bytes:
+        """The `.vis` file's bytes (the layout `read_fusion_visibility` reads)."""
+        counts = self.counts
+        words = np.empty(len(counts) + len(self.images), "<u4")
+        heads = self.offsets[:-1] + np.arange(len(counts))
+        words[heads] = counts
+        is_image = np.ones(len(words), bool)
+        is_image[heads] = False
+        words[is_image] = self.images
+        return struct.pack("<Q", len(counts)) + words.tobytes()
 
 
 def read_fusion_visibility(path: Path | str) -> FusionVisibility:

@@ -21,7 +21,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from postproc.dense.colmap_io import DenseWorkspace, PinholeView, read_array
+from postproc.dense.colmap_io import (
+    DenseWorkspace,
+    FusionVisibility,
+    PinholeView,
+    read_array,
+    read_fusion_visibility,
+)
 from postproc.dense.options import FusionOptions as FusionOptions
 from postproc.dense.tiles import Box, split_boxes
 from shared.errors import OutputExistsError, StageError
@@ -56,9 +62,8 @@ def fuse(
         raise OutputExistsError(f"{output_ply}: already exists (refusing to overwrite)")
     samples, owners, weights = sample_depth_points(workspace, views, references)
     budget = options.max_tile_pixels
-    boxes = split_boxes(samples, weights, budget) if budget > 0 else []
-    if len(boxes) <= 1:
-        boxes = [Box(np.full(3, -np.inf), np.full(3, np.inf))]
+    everywhere = Box(np.full(3, -np.inf), np.full(3, np.inf))
+    boxes = split_boxes(samples, weights, budget) if budget > 0 else [everywhere]
     output_ply.parent.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {
         "tiles": len(boxes),
@@ -241,8 +246,6 @@ def join_visibility(
     """Concatenate COLMAP fusion `.vis` files (uint64 point count, then per point a
     uint32 count and that many uint32 image indices) into `output`, each image index k
     written as `image_index[k]` (None: as it is). One part in memory at a time."""
-    from postproc.dense.colmap_io import read_fusion_visibility
-
     total = 0
     for part in parts:
         with part.open("rb") as f:
@@ -261,16 +264,5 @@ def join_visibility(
             visible = read_fusion_visibility(part)
             if len(visible.images) and int(visible.images.max()) >= len(image_index):
                 raise StageError(f"{part}: image index past the {len(image_index)} fused")
-            out.write(visibility_body(visible.offsets, image_index[visible.images]))
-
-
-def visibility_body(offsets: npt.NDArray[np.int64], images: npt.NDArray[np.uint32]) -> bytes:
-    """The per-point part of a `.vis` file: each point's count, then its image indices."""
-    counts = np.diff(offsets)
-    words = np.empty(len(counts) + len(images), "<u4")
-    heads = offsets[:-1] + np.arange(len(counts))
-    words[heads] = counts
-    is_image = np.ones(len(words), bool)
-    is_image[heads] = False
-    words[is_image] = images
-    return words.tobytes()
+            remapped = FusionVisibility(visible.offsets, image_index[visible.images])
+            out.write(memoryview(remapped.to_bytes())[8:])  # without its point count

@@ -101,6 +101,10 @@ def test_fusion_visibility(tmp_path: Path) -> None:
     assert packed.images.tolist() == vis.images.tolist()
     path.write_bytes(_vis_bytes([[], [7]]))
     assert [v.tolist() for v in read_fusion_visibility(path)] == [[], [7]]
+    # Written back as COLMAP lays it out.
+    assert vis.to_bytes() == _vis_bytes([[0, 2], [1], [3, 4, 5]])
+    assert FusionVisibility.from_lists([[], [7]]).to_bytes() == _vis_bytes([[], [7]])
+    assert FusionVisibility.from_lists([]).to_bytes() == _vis_bytes([])
     path.write_bytes(_vis_bytes([[0, 2], [1]])[:-4])
     with pytest.raises(InputError, match="truncated"):
         read_fusion_visibility(path)
