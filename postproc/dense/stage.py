@@ -282,12 +282,27 @@ class CpuBackend:
     """Our SGBM stereo on neighbour pairs (`postproc.dense.stereo_cpu`), one job per
     reference image through the map function."""
 
+    def __init__(self) -> None:
+        # The views, references and partners last computed: `run` matches the partners
+        # `images_needed` had undistorted (seconds of geometry on a long dive, done once).
+        self._last: tuple[list[PinholeView], list[int], list[list[int]]] | None = None
+
+    def partners(
+        self, options: DenseOptions, views: list[PinholeView], references: list[int]
+    ) -> list[list[int]]:
+        """`stereo_partners`, computed once for the same views and references."""
+        last = self._last
+        if last is None or last[0] is not views or last[1] != list(references):
+            last = (views, list(references), stereo_partners(options, views, references))
+            self._last = last
+        return last[2]
+
     def images_needed(
         self, options: DenseOptions, views: list[PinholeView], references: list[int]
     ) -> list[int]:
         """The references and their stereo partners."""
         needed = set(references)
-        for partners in stereo_partners(options, views, references):
+        for partners in self.partners(options, views, references):
             needed.update(partners)
         return sorted(needed)
 
@@ -301,7 +316,7 @@ class CpuBackend:
         map_fn: MapFn,
     ) -> dict[str, Any]:
         ranges = [depth_range_m(v, options.fallback_depth_range_m) for v in views]
-        neighbours = stereo_partners(options, views, references)
+        neighbours = self.partners(options, views, references)
         jobs = []
         skipped = 0
         for k, partners in zip(references, neighbours, strict=True):
