@@ -14,6 +14,7 @@ from postproc.sfm.inputs import read_inputs
 from postproc.sfm.refine import (
     RefineOptions,
     _Mapper,
+    camera_poses,
     cap_tracks,
     evenly_spaced,
     refine_with_priors,
@@ -52,7 +53,6 @@ def test_cap_tracks_keeps_every_point_and_bounds_its_observations(
     shutil.copyfile(matched / "sfm" / "database.db", database)
     placed = dict(zip(keyframes.names, keyframes.world_from_cam, strict=True))
     mapper = _Mapper(database, placed, RefineOptions(num_threads=2))
-    mapper.triangulate()
     mapper.mapper.complete_and_merge_tracks(mapper.tri_options)
     reconstruction = mapper.reconstruction
     before = {
@@ -133,7 +133,7 @@ def test_dogleg_only_with_a_direct_solver(matched: Path, tmp_path: Path) -> None
         mapper = _Mapper(database, placed, options)
         strategies[name] = _strategy(mapper)
         if name == "iterative":
-            mapper.triangulate()  # and one adjustment runs (Ceres refuses dogleg + CG)
+            # One adjustment runs (Ceres refuses dogleg + CG).
             assert mapper.mapper.adjust_global_bundle(mapper.mapper_options, mapper.ba_options)
         mapper.close()
     assert strategies == {
@@ -186,3 +186,26 @@ def test_chi2_rule_stays_accurate(
         result = refine_with_priors(database, keyframes, options)
         errors[tolerance] = _worst_sim3_m(result.world_from_cam, slam_survey)
     assert errors[RefineOptions().ba_chi2_tolerance] < 1.1 * errors[None] + 0.001, errors
+
+
+def test_last_round_skips_track_upkeep_without_moving_a_camera(
+    matched: Path, tmp_path: Path
+) -> None:
+    keyframes, _ = build_keyframes(read_inputs([matched / "merge"]), SfmOptions())
+    placed = dict(zip(keyframes.names, keyframes.world_from_cam, strict=True))
+    poses, points = {}, {}
+    for keep in (True, False):
+        database = tmp_path / f"keep_{keep}.db"
+        shutil.copyfile(matched / "sfm" / "database.db", database)
+        mapper = _Mapper(database, placed, RefineOptions(num_threads=2))
+        rounds: list[dict[str, float]] = []
+        mapper.refine_rounds(rounds, converged_change_m=0.05, keep_tracks=keep)
+        poses[keep] = camera_poses(mapper.reconstruction)
+        points[keep] = mapper.reconstruction.num_points3D()
+        assert rounds[-1]["p95_shape_move_m"] < 0.05
+        mapper.close()
+    assert poses[True].keys() == poses[False].keys()
+    for name, pose in poses[True].items():
+        np.testing.assert_allclose(poses[False][name], pose, atol=1e-9)
+    # The last round's completion, merging and filtering ran only where the tracks stay.
+    assert points[True] != points[False]
