@@ -142,6 +142,12 @@ class RefineOptions:
         18.1-18.8 s at 3 minutes; three runs against two, load 3-9), sim3 ATE 0.80 / 0.76
         against 0.85 / 0.75 cm, without alignment 42.7 / 29.9 against 41.5 / 29.9 cm.
         The iterations that remain alternate accepted and rejected dogleg steps.
+    first_pass_ba_chi2_tolerance: the same rule for the first pass's adjustments when
+        the rebuild pass follows (`rebuild_tracks`): their poses only seed the rebuilt
+        tracks and need to be good to centimetres. With 100 against 10, the first pass's
+        one adjustment on bench_pipeline.py's 10-minute dive stopped after 9.7 against
+        18.7 s (keyframes 1.12 against 1.15 cm from the truth after the rebuild pass;
+        bench_sfm.py's surveys 0.87-1.16 against 0.90-1.16 cm, sim3).
     ba_max_track_length: observations of one point that go into each adjustment, at most
         (None: all). Longer tracks keep this many, spread evenly over their keyframes
         (first and last included, so a point seen on several passes still ties them),
@@ -206,6 +212,7 @@ class RefineOptions:
     ba_gradient_tolerance: float = 1.0
     ba_function_tolerance: float = 0.0
     ba_chi2_tolerance: float | None = 10.0
+    first_pass_ba_chi2_tolerance: float | None = 100.0
     ba_max_iterations: int = 50
     ba_max_track_length: int | None = 8
     ba_trust_region: Literal["dogleg", "levenberg_marquardt"] = "dogleg"
@@ -235,10 +242,10 @@ class RefineOptions:
             raise ValueError(
                 f"ba_max_track_length must be at least 3 (or None), got {self.ba_max_track_length}"
             )
-        if self.ba_chi2_tolerance is not None and not self.ba_chi2_tolerance > 0:
-            raise ValueError(
-                f"ba_chi2_tolerance must be positive (or None), got {self.ba_chi2_tolerance}"
-            )
+        for name in ("ba_chi2_tolerance", "first_pass_ba_chi2_tolerance"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name} must be positive (or None), got {value}")
         if self.ba_max_direct_sparse_images < 0:
             raise ValueError(
                 "ba_max_direct_sparse_images must be 0 or more, got "

@@ -322,8 +322,11 @@ class _Mapper:
         """The adjustment's relative cost tolerance for `observations` observations (see
         `RefineOptions.ba_chi2_tolerance`)."""
         solver = self.ba_options.ceres.solver_options
+        chi2 = self.options.ba_chi2_tolerance
+        if not self.rebuilt and self.options.rebuild_tracks:
+            chi2 = self.options.first_pass_ba_chi2_tolerance
         solver.function_tolerance = function_tolerance(
-            self.options.ba_function_tolerance, self.options.ba_chi2_tolerance, observations
+            self.options.ba_function_tolerance, chi2, observations
         )
 
     def refine_rounds(

@@ -3,6 +3,7 @@ adjustments that converge (dogleg) instead of running out of iterations."""
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -165,27 +166,42 @@ def test_chi2_rule_sets_the_tolerance_per_adjustment(matched: Path, tmp_path: Pa
     database = tmp_path / "database.db"
     shutil.copyfile(matched / "sfm" / "database.db", database)
     placed = dict(zip(keyframes.names, keyframes.world_from_cam, strict=True))
-    mapper = _Mapper(database, placed, RefineOptions(num_threads=2, ba_chi2_tolerance=4.0))
-    solver = mapper.ba_options.ceres.solver_options
-    mapper._set_function_tolerance(500)
+    options = RefineOptions(num_threads=2, ba_chi2_tolerance=4.0, first_pass_ba_chi2_tolerance=40)
+    rebuilt = _Mapper(database, placed, options, rebuilt=True)
+    solver = rebuilt.ba_options.ceres.solver_options
+    rebuilt._set_function_tolerance(500)
     assert solver.function_tolerance == pytest.approx(4.0 / 1000)
-    mapper._set_function_tolerance(2000)
+    rebuilt._set_function_tolerance(2000)
     assert solver.function_tolerance == pytest.approx(4.0 / 4000)
-    mapper.close()
+    rebuilt.close()
+    # The first pass, whose poses only seed the rebuilt tracks, stops earlier...
+    first = _Mapper(database, placed, options)
+    first._set_function_tolerance(500)
+    assert first.ba_options.ceres.solver_options.function_tolerance == pytest.approx(40 / 1000)
+    first.close()
+    # ...unless it is the only pass.
+    only = _Mapper(database, placed, dataclasses.replace(options, rebuild_tracks=False))
+    only._set_function_tolerance(500)
+    assert only.ba_options.ceres.solver_options.function_tolerance == pytest.approx(4.0 / 1000)
+    only.close()
 
 
 def test_chi2_rule_stays_accurate(
     matched: Path, slam_survey: list[SlamLikeSession], tmp_path: Path
 ) -> None:
     keyframes, _ = build_keyframes(read_inputs([matched / "merge"]), SfmOptions())
-    errors: dict[float | None, float] = {}
-    for tolerance in (None, RefineOptions().ba_chi2_tolerance):
-        database = tmp_path / f"chi2_{tolerance}.db"
+    errors: dict[str, float] = {}
+    for name, options in {
+        "none": RefineOptions(
+            num_threads=2, ba_chi2_tolerance=None, first_pass_ba_chi2_tolerance=None
+        ),
+        "default": RefineOptions(num_threads=2),
+    }.items():
+        database = tmp_path / f"chi2_{name}.db"
         shutil.copyfile(matched / "sfm" / "database.db", database)
-        options = RefineOptions(num_threads=2, ba_chi2_tolerance=tolerance)
         result = refine_with_priors(database, keyframes, options)
-        errors[tolerance] = _worst_sim3_m(result.world_from_cam, slam_survey)
-    assert errors[RefineOptions().ba_chi2_tolerance] < 1.1 * errors[None] + 0.001, errors
+        errors[name] = _worst_sim3_m(result.world_from_cam, slam_survey)
+    assert errors["default"] < 1.1 * errors["none"] + 0.001, errors
 
 
 def test_last_round_skips_track_upkeep_without_moving_a_camera(

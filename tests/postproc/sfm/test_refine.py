@@ -97,6 +97,7 @@ def test_fill_missing_carries_the_nearest_correction() -> None:
         {"ba_trust_region": "newton"},
         {"ba_chi2_tolerance": 0.0},
         {"ba_chi2_tolerance": -1.0},
+        {"first_pass_ba_chi2_tolerance": 0.0},
     ],
 )
 def test_refine_options_reject_bad_values(kwargs: dict[str, object]) -> None:
