@@ -5,8 +5,8 @@ does not fit, but what the divers need to plan the next dive does: where the cam
 went, at what depth, the sparse structure it saw, and which parts of it were seen
 badly or not at all. The quick look runs the session stages that give that
 (calibrate, import, slam, depth) with a lighter SLAM (half the width, 10 images a
-second, a keyframe a second, no final batch: `quick_project`), then draws one page
-from their folders.
+second, a keyframe a second, no final batch, no keyframe images: `quick_project`),
+then draws one page from their folders.
 
 Layout, inside the project's output folder::
 
@@ -66,8 +66,8 @@ QUICK_PAGE = "quick.html"
 def quick_project(project: Project, *, width_px: int = QUICK_WIDTH_PX) -> Project:
     """`project` for the quick look: output in `<output>/quick`; SLAM with frontend
     images shrunk to `width_px`, at most `QUICK_RATE_HZ` images a second, a keyframe at
-    least every `QUICK_KEYFRAME_INTERVAL_S` and no final batch (never more work than
-    the project's own settings ask)."""
+    least every `QUICK_KEYFRAME_INTERVAL_S`, no final batch and no keyframe images
+    (the page draws none; never more work than the project's own settings ask)."""
     stage_options = dict(project.stage_options)
     slam = copy.deepcopy(project.options_for("slam"))
     current = int(slam.frontend.width_px)
@@ -77,6 +77,7 @@ def quick_project(project: Project, *, width_px: int = QUICK_WIDTH_PX) -> Projec
     keyframes = slam.estimator.keyframes
     keyframes.max_interval_s = max(keyframes.max_interval_s, QUICK_KEYFRAME_INTERVAL_S)
     slam.estimator.backend.final_batch = False
+    slam.keyframe_images = False
     stage_options["slam"] = slam
     return dataclasses.replace(
         project, output=project.output / QUICK_FOLDER, stage_options=stage_options

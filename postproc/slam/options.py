@@ -380,6 +380,11 @@ class SlamOptions:
         metric when the IMU can weigh it, by postproc.slam.stabilised; stats.json
         says which ("gyro_check", "mode", "metric_scale"). An explicit `camchain`
         turns "auto" off.
+    keyframe_images: write each keyframe's image into `keyframes/` (SfM, dense and the
+        natural-feature merge read them). The quick look turns it off: its page draws
+        none, and encoding them as PNG took 13.4 s of CPU in the frontend's process for
+        the 628 keyframes of its 10-minute run (bench_pipeline.py, profiled). Without
+        them SfM refuses the folder (keyframe images missing).
     estimator_process: run the estimator (keyframe rule, smoother, loop closure) in a
         second process ("on"), in the frontend's ("off"), or "auto": a second process
         from 300 images on, with at least two cores and one of them idle (the cores busy
@@ -404,4 +409,5 @@ class SlamOptions:
     max_speed_m_s: float | None = 10.0
     gyro_check: Literal["auto", "on", "off"] = "auto"
     gyro_check_options: GyroCheckOptions = field(default_factory=GyroCheckOptions)
+    keyframe_images: bool = True
     estimator_process: Literal["auto", "on", "off"] = "auto"

@@ -400,7 +400,7 @@ def _build(
     # of 960x540 video, 2 shared cores).
     opencv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
-    save = functools.partial(_save_keyframe, folder)
+    save = functools.partial(_save_keyframe, folder) if options.keyframe_images else _no_image
     # With a second process the estimator runs beside the frontend's threads instead of
     # taking turns with them for the GIL (postproc.slam.estimator_process).
     runner: EstimatorRunner = (
@@ -781,6 +781,10 @@ def _check_speed(result: SlamResult, max_speed_m_s: float, name: str) -> None:
             "held the IMU integration (scene too far or too poorly textured, or a wrong "
             "calibration guess)"
         )
+
+
+def _no_image(frame: Frame) -> None:
+    """A keyframe when `SlamOptions.keyframe_images` is off: nothing written."""
 
 
 def _save_keyframe(folder: SlamFolder, frame: Frame) -> None:

@@ -41,10 +41,12 @@ def test_plan_keeps_session_stages_and_shares_imports_with_the_full_run(
     slam = quick.options_for("slam")
     assert slam.frontend.width_px == 320 and slam.max_rate_hz == 10.0
     assert slam.estimator.keyframes.max_interval_s == 1.0 and not slam.estimator.backend.final_batch
+    assert not slam.keyframe_images  # the page draws none
     # The full project keeps its own options.
     full = project.options_for("slam")
     assert full.frontend.width_px == full_width == 960 and full.max_rate_hz is None
     assert full.estimator.keyframes.max_interval_s == 0.5 and full.estimator.backend.final_batch
+    assert full.keyframe_images
     registry = quick_stages(project)
     assert list(registry) == ["calibrate", "import", "slam", "depth"]
     # Imports and calibration go where the full run puts them; slam and depth to quick/.

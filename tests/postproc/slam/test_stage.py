@@ -143,6 +143,28 @@ def test_max_rate_uses_part_of_the_images_and_stays_accurate(
     assert not (tmp_path / "bad").exists()
 
 
+def test_without_keyframe_images_the_same_trajectory_and_sfm_refuses_the_folder(
+    wall_euroc: Path, tmp_path: Path
+) -> None:
+    from postproc.sfm.inputs import read_inputs
+
+    outputs = {}
+    for images in (True, False):
+        options = SlamOptions(
+            frontend=FrontendOptions(width_px=0), max_rate_hz=5.0, keyframe_images=images
+        )
+        outputs[images] = run(options, wall_euroc, tmp_path / f"slam_{images}")
+    with_images, without = outputs[True], outputs[False]
+    for name in ("trajectory.tum", "keyframes.tum"):
+        assert (without / name).read_bytes() == (with_images / name).read_bytes()
+    assert any((with_images / "keyframes").iterdir())
+    assert not any((without / "keyframes").iterdir())
+    stats = json.loads((without / "stats.json").read_text())
+    assert stats["options"]["keyframe_images"] is False
+    with pytest.raises(InputError, match="keyframe images missing"):
+        read_inputs([without])
+
+
 def test_errors(wall_euroc: Path, tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"missing: no such file or folder .*EuRoC"):
         run(SlamOptions(), tmp_path / "missing", tmp_path / "out")
