@@ -13,6 +13,8 @@ import pytest
 from postproc.pipeline.project import load_project
 from postproc.pipeline.quick import (
     QUICK_FOLDER,
+    QUICK_WINDOW_KEYFRAMES,
+    QUICK_WINDOW_STEP,
     quick_project,
     quick_stages,
     read_quick_session,
@@ -42,11 +44,14 @@ def test_plan_keeps_session_stages_and_shares_imports_with_the_full_run(
     assert slam.frontend.width_px == 320 and slam.max_rate_hz == 10.0
     assert slam.estimator.keyframes.max_interval_s == 1.0 and not slam.estimator.backend.final_batch
     assert not slam.keyframe_images  # the page draws none
+    assert slam.estimator.backend.window_keyframes == QUICK_WINDOW_KEYFRAMES < 150
+    assert slam.estimator.backend.window_step_keyframes == QUICK_WINDOW_STEP < 100
     # The full project keeps its own options.
     full = project.options_for("slam")
     assert full.frontend.width_px == full_width == 960 and full.max_rate_hz is None
     assert full.estimator.keyframes.max_interval_s == 0.5 and full.estimator.backend.final_batch
     assert full.keyframe_images
+    assert full.estimator.backend.window_keyframes == 150
     registry = quick_stages(project)
     assert list(registry) == ["calibrate", "import", "slam", "depth"]
     # Imports and calibration go where the full run puts them; slam and depth to quick/.
@@ -61,7 +66,14 @@ def test_plan_keeps_session_stages_and_shares_imports_with_the_full_run(
 def test_never_widens_the_project_s_own_width(project_file: Path) -> None:
     project = load_project(project_file)
     project.options_for("slam").frontend.width_px = 400
-    assert quick_project(project, width_px=480).options_for("slam").frontend.width_px == 400
+    project.options_for("slam").estimator.backend.window_keyframes = 40
+    quick = quick_project(project, width_px=480).options_for("slam")
+    assert quick.frontend.width_px == 400
+    assert quick.estimator.backend.window_keyframes == 40
+    # A project that keeps every keyframe still gets the quick look's window.
+    project.options_for("slam").estimator.backend.window_keyframes = 0
+    quick = quick_project(project).options_for("slam")
+    assert quick.estimator.backend.window_keyframes == QUICK_WINDOW_KEYFRAMES
 
 
 def test_quick_run_on_fake_stages_reruns_nothing_the_second_time(
