@@ -6,8 +6,7 @@ went, at what depth, the sparse structure it saw, and which parts of it were see
 badly or not at all. The quick look runs the session stages that give that
 (calibrate, import, slam, depth) with a lighter SLAM (half the width, 10 images a
 second, a keyframe a second, a shorter smoother window, no final batch, no keyframe
-images: `quick_project`),
-then draws one page from their folders.
+images: `quick_project`), then draws one page from their folders.
 
 Layout, inside the project's output folder::
 
