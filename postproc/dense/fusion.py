@@ -13,6 +13,7 @@ that one call would have fused across a cut become two points, one a side.
 from __future__ import annotations
 
 import logging
+import math
 import shutil
 import tempfile
 from pathlib import Path
@@ -62,8 +63,7 @@ def fuse(
         raise OutputExistsError(f"{output_ply}: already exists (refusing to overwrite)")
     samples, owners, weights = sample_depth_points(workspace, views, references)
     budget = options.max_tile_pixels
-    everywhere = Box(np.full(3, -np.inf), np.full(3, np.inf))
-    boxes = split_boxes(samples, weights, budget) if budget > 0 else [everywhere]
+    boxes = split_boxes(samples, weights, budget if budget > 0 else math.inf)
     output_ply.parent.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {
         "tiles": len(boxes),

@@ -102,8 +102,8 @@ class RefineOptions:
         the keyframes in order, each continuing the tracks of those before it when its
         ray is within the angle (`postproc.sfm.refine`), and 2 degrees is 17 px at a
         focal length of 500 px: 1 degree kept the tracks about as clean as merging at
-        4 px (bench_pipeline.py's 10-minute dive: 1.20 cm against the truth, 1.39 cm
-        at 2 degrees).
+        4 px (bench_pipeline.py's 10-minute dive, refinement rerun on its database by a
+        one-off script: 1.20 cm against the truth, 1.39 cm at 2 degrees).
     first_pass_converged_change_m: with `rebuild_tracks`, the first pass stops once 95 %
         of the shape's cameras move less than this in a round (or are predicted to),
         metres:
@@ -145,9 +145,10 @@ class RefineOptions:
     first_pass_ba_chi2_tolerance: the same rule for the first pass's adjustments when
         the rebuild pass follows (`rebuild_tracks`): their poses only seed the rebuilt
         tracks and need to be good to centimetres. With 100 against 10, the first pass's
-        one adjustment on bench_pipeline.py's 10-minute dive stopped after 9.7 against
-        18.7 s (keyframes 1.12 against 1.15 cm from the truth after the rebuild pass;
-        bench_sfm.py's surveys 0.87-1.16 against 0.90-1.16 cm, sim3).
+        one adjustment on bench_pipeline.py's 10-minute dive (rerun on its database by a
+        one-off script) stopped after 9.7 against 18.7 s (keyframes 1.12 against 1.15 cm
+        from the truth after the rebuild pass; bench_sfm.py --refine-only's surveys
+        0.89-1.16 against 0.87-1.16 cm, sim3).
     ba_max_track_length: observations of one point that go into each adjustment, at most
         (None: all). Longer tracks keep this many, spread evenly over their keyframes
         (first and last included, so a point seen on several passes still ties them),

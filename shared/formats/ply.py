@@ -54,11 +54,8 @@ def read_ply(path: Path | str) -> PlyData:
     if not path.is_file():
         raise InputError(f"{path}: no such PLY file")
     data = path.read_bytes()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
-        raise InputError(f"{path}: not a PLY file (expected 'ply' ... 'end_header')")
-    header = data[:end].decode("ascii", errors="replace").splitlines()
-    offset = end + len(b"end_header\n")
+    lines, offset = _header_lines(path, data)
+    header = [line.decode("ascii", errors="replace") for line in lines]
     elements: list[tuple[str, int, list[tuple[str, ...]]]] = []
     fmt = ""
     for line in header[1:]:
@@ -120,15 +117,20 @@ def vertex_ply_header(path: Path | str) -> tuple[list[bytes], int, int]:
     if not path.is_file():
         raise InputError(f"{path}: no such PLY file")
     with path.open("rb") as f:
-        head = f.read(1 << 16)
-    end = head.find(b"end_header\n")
-    if not head.startswith(b"ply\n") or end < 0:
-        raise InputError(f"{path}: not a PLY file (expected 'ply' ... 'end_header')")
-    lines = head[:end].split(b"\n")[:-1] if head[:end].endswith(b"\n") else head[:end].split(b"\n")
+        lines, offset = _header_lines(path, f.read(1 << 16))
     elements = [ln for ln in lines if ln.startswith(b"element ")]
     if len(elements) != 1 or not elements[0].startswith(b"element vertex "):
         raise InputError(f"{path}: expected a point cloud (one vertex element), got {elements}")
-    return lines, int(elements[0].split()[2]), end + len(b"end_header\n")
+    return lines, int(elements[0].split()[2]), offset
+
+
+def _header_lines(path: Path, data: bytes) -> tuple[list[bytes], int]:
+    """The header lines of the PLY whose bytes start `data`, up to `end_header` (not
+    included), and the byte offset of its body."""
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise InputError(f"{path}: not a PLY file (expected 'ply' ... 'end_header')")
+    return data[:end].splitlines(), end + len(b"end_header\n")
 
 
 def ply_bytes(ply: PlyData, *, comments: Sequence[str] = ()) -> bytes:
