@@ -4,7 +4,8 @@
         [--keyframe-step 0.25] [--max-image-size 960] [--backend auto] [--keep DIR]
         [--no-view-selection] [--min-baseline-rel 0.3] [--min-rotation-deg 20]
         [--project-keyframes 5000] [--max-neighbours 4] [--far-neighbours 2]
-        [--single-image-neighbours 0 --single-image-radius 0.05] [--single-image-min-pairs 3]
+        [--single-image-neighbours 0 --single-image-radius 0.05] [--single-image-min-pairs 4]
+        [--single-image-near-min-pairs 2 --single-image-near-range 6]
         [--support-tolerance 0.02]
 
 Simulates session 0 of the survey (`sim.survey`: diver route along the starboard
@@ -157,6 +158,12 @@ def main() -> None:
                         default=DenseOptions().mesh_single_image_min_pairs,
                         help="mesh: keep a point of one depth map where this many of its "
                              "stereo pairs agreed (0: off)")  # fmt: skip
+    parser.add_argument("--single-image-near-min-pairs", type=int,
+                        default=DenseOptions().mesh_single_image_near_min_pairs,
+                        help="mesh: the same within the near range (0: off)")  # fmt: skip
+    parser.add_argument("--single-image-near-range", type=float,
+                        default=DenseOptions().mesh_single_image_near_range_m,
+                        help="mesh: range of that rule, metres from the map's camera")  # fmt: skip
     args = parser.parse_args()
 
     sim = SurveySimulator(
@@ -204,6 +211,8 @@ def main() -> None:
         mesh_single_image_neighbours=args.single_image_neighbours,
         mesh_single_image_radius_m=args.single_image_radius,
         mesh_single_image_min_pairs=args.single_image_min_pairs,
+        mesh_single_image_near_min_pairs=args.single_image_near_min_pairs,
+        mesh_single_image_near_range_m=args.single_image_near_range,
     )  # fmt: skip
     options.fusion = FusionOptions(
         min_num_pixels=args.min_num_pixels, max_depth_error_rel=args.max_depth_error
@@ -333,8 +342,9 @@ def one_map_support(
     min_images: int,
 ) -> list[str]:
     """Lines on the fused points of fewer than `min_images` images (left out of the mesh
-    by default): how many there are at each stereo pair support, and how many of them lie
-    within 5 cm of the truth (the evidence behind `mesh_single_image_min_pairs`).
+    by default): how many there are at each stereo pair support and depth band, and how
+    many of them lie within 5 cm of the truth (the evidence behind the mesh's rules
+    `mesh_single_image_min_pairs` and `mesh_single_image_near_*`).
     fused_m: the fused points (`dense.fused`'s vertices); errors: their distances to
     the truth (m)."""
     from postproc.dense.colmap_io import read_fusion_visibility
@@ -347,17 +357,21 @@ def one_map_support(
     support = pair_support(
         fused_m[weak], visible.subset(weak), DenseWorkspace(dense.workspace), views
     )
+    bands = [(0.0, 2.0), (2.0, 4.0), (4.0, 5.0), (5.0, 6.0), (6.0, 7.0), (7.0, 8.0),
+             (8.0, np.inf)]  # fmt: skip
     lines = [
         f"points of fewer than {min_images} depth maps: {len(weak)} of {len(visible)} "
-        f"({100 * len(weak) / len(visible):.0f} %); by the stereo pairs agreeing at the pixel:"
+        f"({100 * len(weak) / len(visible):.0f} %); by the stereo pairs agreeing at the pixel "
+        "and the depth in the map's camera: points, % within 5 cm of the truth",
+        "pairs" + "".join(f"{f'{lo:g}-{hi:g} m':>17s}" for lo, hi in bands),
     ]
-    for level in range(int(support.max()) + 1):
-        at = support == level
-        if at.any():
-            within = np.mean(errors[weak[at]] < 0.05)
-            lines.append(
-                f"  {level} pairs: {int(at.sum())} points, {100 * within:.1f} % within 5 cm"
-            )
+    for level in range(int(support.pairs.max()) + 1):
+        cells = []
+        for lo, hi in bands:
+            at = (support.pairs == level) & (support.depth_m >= lo) & (support.depth_m < hi)
+            share = f"{100 * np.mean(errors[weak[at]] < 0.05):.1f}" if at.any() else "-"
+            cells.append(f"{int(at.sum()):>9d} {share:>5s} %")
+        lines.append(f"{level:>5d}" + "".join(cells))
     return lines
 
 

@@ -40,7 +40,7 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -602,6 +602,8 @@ def _build(
                 min_neighbours=options.mesh_single_image_neighbours,
                 radius_m=options.mesh_single_image_radius_m,
                 min_pairs=options.mesh_single_image_min_pairs,
+                near_min_pairs=options.mesh_single_image_near_min_pairs,
+                near_range_m=options.mesh_single_image_near_range_m,
                 workspace=workspace, views=views,
             )  # fmt: skip
         if not mesh_ply.exists():
@@ -639,6 +641,8 @@ def supported_points(
     min_neighbours: int = 0,
     radius_m: float = 0.05,
     min_pairs: int = 0,
+    near_min_pairs: int = 0,
+    near_range_m: float = 0.0,
     workspace: DenseWorkspace | None = None,
     views: list[PinholeView] | None = None,
 ) -> Path:
@@ -651,7 +655,10 @@ def supported_points(
     - `min_pairs` > 0: in each depth map it came from, at least `min_pairs` stereo pairs
       agreed on the depth at its pixel (the CPU stereo's support maps in `workspace`;
       `views` in the workspace's image order, as `.vis` indexes them), so `min_pairs` + 1
-      images matched it. A map without support (PatchMatch) keeps nothing by this rule."""
+      images matched it. A map without support (PatchMatch) keeps nothing by this rule;
+    - `near_min_pairs` > 0: the same with `near_min_pairs` pairs for a point no farther
+      than `near_range_m` (m) from the cameras of those maps (through water, far surfaces
+      lose contrast and a few pairs agree on a wrong depth by chance)."""
     from postproc.dense.colmap_io import read_fusion_visibility
     from shared.formats.ply import PlyData, read_ply, write_ply
 
@@ -672,11 +679,14 @@ def supported_points(
             cloud.vertices[weak], radius_m, return_length=True
         )
         extra[weak[np.asarray(counts) - 1 >= min_neighbours]] = True
-    if min_pairs > 0 and len(weak):
+    if (min_pairs > 0 or near_min_pairs > 0) and len(weak):
         if workspace is None or views is None:
             raise ValueError("the pair-support rule needs the workspace and its views")
         support = pair_support(cloud.vertices[weak], visible.subset(weak), workspace, views)
-        extra[weak] |= support >= min_pairs
+        if min_pairs > 0:
+            extra[weak] |= support.pairs >= min_pairs
+        if near_min_pairs > 0:
+            extra[weak] |= (support.pairs >= near_min_pairs) & (support.depth_m <= near_range_m)
     keep |= extra
     if not keep.any():
         raise StageError(f"{fused_ply}: no point was fused from {min_images} or more images")
@@ -688,34 +698,44 @@ def supported_points(
     return write_ply(out_ply, kept, overwrite=True)
 
 
+class PairSupport(NamedTuple):
+    """`pair_support`'s answer, one value per point."""
+
+    pairs: npt.NDArray[np.int64]  # fewest stereo pairs agreeing in any of its images
+    depth_m: npt.NDArray[np.float64]  # largest depth in those cameras (m; inf: none)
+
+
 def pair_support(
     points_m: npt.NDArray[np.float64],
     visible: FusionVisibility,
     workspace: DenseWorkspace,
     views: list[PinholeView],
-) -> npt.NDArray[np.int64]:
+) -> PairSupport:
     """For each point (world, m) and the images it was fused from (`visible[i]` for
     point i): the fewest stereo pairs that agreed on its depth in any of those images'
     support maps, read at the point's projection (the most of the 3x3 pixels around it:
     a fused point averages pixels); 0 when an image has no support map or the point falls
-    outside it."""
+    outside it. Also the point's largest depth in those cameras (inf: none)."""
     import cv2
 
     points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     result = np.full(len(points), np.iinfo(np.int64).max, np.int64)
     result[visible.counts == 0] = 0
+    depth = np.full(len(points), -np.inf)
+    depth[visible.counts == 0] = np.inf
     owners = visible.point_of_each_image()
     order = np.argsort(visible.images, kind="stable")
     images, starts = np.unique(visible.images[order], return_index=True)
     for k, group in zip(images.tolist(), np.split(order, starts[1:]), strict=True):
         index = owners[group]
         view = views[k]
+        cam = points[index] @ view.cam_from_world[:3, :3].T + view.cam_from_world[:3, 3]
+        np.maximum.at(depth, index, np.where(cam[:, 2] > 0, cam[:, 2], np.inf))
         path = workspace.support_map_path(view.name)
         if not path.is_file():
             result[index] = 0
             continue
         grown = cv2.dilate(read_array(path), np.ones((3, 3), np.uint8))
-        cam = points[index] @ view.cam_from_world[:3, :3].T + view.cam_from_world[:3, 3]
         z = np.where(cam[:, 2] > 0, cam[:, 2], np.nan)
         with np.errstate(invalid="ignore"):
             u = np.floor(view.K[0, 0] * cam[:, 0] / z + view.K[0, 2])
@@ -726,7 +746,7 @@ def pair_support(
         pairs = np.zeros(len(index), np.int64)
         pairs[inside] = grown[v[inside].astype(np.int64), u[inside].astype(np.int64)]
         np.minimum.at(result, index, pairs)
-    return result
+    return PairSupport(pairs=result, depth_m=depth)
 
 
 def read_depth_map(workspace_dir: Path, image_name: str) -> npt.NDArray[np.float32]:

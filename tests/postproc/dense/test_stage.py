@@ -484,16 +484,21 @@ def test_mesh_input_keeps_points_of_one_map_that_pairs_support(tmp_path: Path) -
     write_array(workspace.support_map_path("a.png"), support_a)
     write_array(workspace.support_map_path("b.png"), np.full((10, 20), 2, np.float32))
 
-    def kept(min_pairs: int) -> npt.NDArray[np.float64]:
+    def kept(min_pairs: int, near: int = 0, near_range_m: float = 0.0) -> npt.NDArray[np.float64]:
         out = supported_points(
             tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2,
-            min_pairs=min_pairs, workspace=workspace, views=views,
+            min_pairs=min_pairs, near_min_pairs=near, near_range_m=near_range_m,
+            workspace=workspace, views=views,
         )  # fmt: skip
         return read_ply(out).vertices
 
     np.testing.assert_allclose(kept(3), np.array(points)[[0]])
     np.testing.assert_allclose(kept(2), np.array(points)[[0, 2]])
     np.testing.assert_allclose(kept(1), np.array(points)[[0, 1, 2]])
+    # Fewer pairs within a range: the points lie 2 m in front of their cameras.
+    np.testing.assert_allclose(kept(3, near=2, near_range_m=2.5), np.array(points)[[0, 2]])
+    np.testing.assert_allclose(kept(3, near=2, near_range_m=1.5), np.array(points)[[0]])
+    np.testing.assert_allclose(kept(0, near=1, near_range_m=2.5), np.array(points)[[0, 1, 2]])
     with pytest.raises(ValueError, match="needs the workspace"):
         supported_points(tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2,
                          min_pairs=2)  # fmt: skip
