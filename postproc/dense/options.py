@@ -233,15 +233,17 @@ class DenseOptions:
         map spread Poisson surface, so 4 (every pair of the default 3 + 1).
     mesh_single_image_near_min_pairs / mesh_single_image_near_range_m: the same rule
         with fewer pairs for the points no farther than the range (m) from their map's
-        camera (0 pairs: off). Through water a far surface loses contrast, and there a
-        few pairs agree on a wrong depth by chance; nearer, two pairs are enough. Measured
-        on the points of one map of `bench_dense.py` (40 s at 960x540, true poses, the
-        simulator's water: green attenuation length 7.7 m), share within 5 cm of the
-        truth with 2 pairs: 99.1 % at 0-2 m, 99.0 % at 2-4 m, 95.7 % at 4-5 m, 92.8 % at
-        5-6 m, 55.4 % at 6-7 m, 20.5 % at 7-8 m (3 pairs: 77.0 % at 6-7 m). The mesh at
-        5 cm went from 99.8 / 59.3 % to 97.9 / 67.9 % (2 pairs within 6 m; 98.0 / 66.7 %
-        within 5.5 m, 95.6 / 69.7 % within 7 m; one-off script on the bench's folder).
-        Set the range to about the water's visibility.
+        camera (0 pairs: off, the default). Through water a far surface loses contrast,
+        and there a few pairs agree on a wrong depth by chance. On uncompressed frames
+        (`bench_dense.py`, 40 s at 960x540, PNG, true poses, the simulator's water: green
+        attenuation length 7.7 m) two pairs are enough nearer than 6 m (99.0 % of such
+        points within 5 cm at 2-4 m, 92.8 % at 5-6 m, 55.4 % at 6-7 m), and 2 pairs within
+        6 m took the mesh at 5 cm from 99.8 / 59.3 % to 97.9 / 67.9 %. On H.264 video they
+        are not: on bench_pipeline's 10-minute dive (the simulator's video at CRF 28, SfM
+        poses) two-pair points at 2-3 m are 85 % within 5 cm, and the rule took the mesh
+        from 97.2 / 58.3 % to 82.1 / 65.9 % (6 m) or 95.1 / 58.5 % (2 m); one-off script on
+        the run's folder. So use it on uncompressed or lightly compressed images only, with
+        the range at about the water's visibility.
     """
 
     max_image_size_px: int = 960
@@ -260,5 +262,5 @@ class DenseOptions:
     mesh_single_image_neighbours: int = 0
     mesh_single_image_radius_m: float = 0.05
     mesh_single_image_min_pairs: int = 4
-    mesh_single_image_near_min_pairs: int = 2
+    mesh_single_image_near_min_pairs: int = 0
     mesh_single_image_near_range_m: float = 6.0
