@@ -6,7 +6,7 @@ went, at what depth, the sparse structure it saw, and which parts of it were see
 badly or not at all. The quick look runs the session stages that give that
 (calibrate, import, slam, depth) with a lighter SLAM (half the width, 10 images a
 second, a keyframe a second, a shorter smoother window, no final batch, no keyframe
-images: `quick_project`), then draws one page from their folders.
+images, a looser pose graph chain: `quick_project`), then draws one page from their folders.
 
 Layout, inside the project's output folder::
 
@@ -67,6 +67,14 @@ QUICK_KEYFRAME_INTERVAL_S = 1.0
 # the window filling up as growth (k 0.95 against 1.12-1.23). 60 / 40: 115.3 s, 6.7 cm.
 QUICK_WINDOW_KEYFRAMES = 100
 QUICK_WINDOW_STEP = 50
+# And a global pose graph whose chain of consecutive keyframes is this many times less
+# certain than the project's (the full run: 1 cm and 0.003 rad per link). Its keyframes
+# are a second apart and tracked at half the width, so a link can be off by several
+# centimetres; with the full run's sigmas the chain outweighed the loops that should have
+# corrected such a stretch (their Cauchy loss set them aside). bench_pipeline.py's
+# 10-minute dive, the same online run each time: ATE 15.9 cm with x1, 5.7 with x2,
+# 5.5 with x3, 7.1 with x5.
+QUICK_POSE_GRAPH_SCALE = 3.0
 QUICK_PAGE = "quick.html"
 
 
@@ -75,7 +83,8 @@ def quick_project(project: Project, *, width_px: int = QUICK_WIDTH_PX) -> Projec
     images shrunk to `width_px`, at most `QUICK_RATE_HZ` images a second, a keyframe at
     least every `QUICK_KEYFRAME_INTERVAL_S`, a smoother window of at most
     `QUICK_WINDOW_KEYFRAMES`, no final batch and no keyframe images (the page draws
-    none; never more work than the project's own settings ask)."""
+    none; never more work than the project's own settings ask), and a pose graph chain
+    `QUICK_POSE_GRAPH_SCALE` times looser than the project's."""
     stage_options = dict(project.stage_options)
     slam = copy.deepcopy(project.options_for("slam"))
     current = int(slam.frontend.width_px)
@@ -92,6 +101,8 @@ def quick_project(project: Project, *, width_px: int = QUICK_WIDTH_PX) -> Projec
         QUICK_WINDOW_KEYFRAMES if window <= 0 else min(window, QUICK_WINDOW_KEYFRAMES)
     )
     backend.window_step_keyframes = min(backend.window_step_keyframes, QUICK_WINDOW_STEP)
+    backend.pose_graph_rotation_sigma_rad *= QUICK_POSE_GRAPH_SCALE
+    backend.pose_graph_translation_sigma_m *= QUICK_POSE_GRAPH_SCALE
     stage_options["slam"] = slam
     return dataclasses.replace(
         project, output=project.output / QUICK_FOLDER, stage_options=stage_options

@@ -13,6 +13,7 @@ import pytest
 from postproc.pipeline.project import load_project
 from postproc.pipeline.quick import (
     QUICK_FOLDER,
+    QUICK_POSE_GRAPH_SCALE,
     QUICK_WINDOW_KEYFRAMES,
     QUICK_WINDOW_STEP,
     quick_project,
@@ -48,6 +49,9 @@ def test_plan_keeps_session_stages_and_shares_imports_with_the_full_run(
     assert slam.estimator.backend.window_step_keyframes == QUICK_WINDOW_STEP < 100
     # The full project keeps its own options.
     full = project.options_for("slam")
+    for name in ("pose_graph_rotation_sigma_rad", "pose_graph_translation_sigma_m"):
+        loose, own = getattr(slam.estimator.backend, name), getattr(full.estimator.backend, name)
+        assert loose == pytest.approx(QUICK_POSE_GRAPH_SCALE * own) and QUICK_POSE_GRAPH_SCALE > 1
     assert full.frontend.width_px == full_width == 960 and full.max_rate_hz is None
     assert full.estimator.keyframes.max_interval_s == 0.5 and full.estimator.backend.final_batch
     assert full.keyframe_images
