@@ -306,7 +306,7 @@ def speed(
     seed: int,
     inputs: list[str],
     estimator_process: Literal["auto", "on", "off"] | None = None,
-    max_rate_hz: float | None = None,
+    rates: dict[str, float | None] | None = None,
 ) -> None:
     """Real-time factor of the stage at its defaults on one rendered 960x540, 30 fps
     session (the size and rate of issue #23), from its EuRoC copy (PNG images) and from
@@ -346,7 +346,7 @@ def speed(
             # EuRoC copy's (the same images, in the same order).
             clock_ns = _first_frame_ns(euroc) - _first_frame_ns(recording)
         out = work / f"slam_{survey.name}_speed_{kind}"
-        options = SlamOptions(max_rate_hz=max_rate_hz)
+        options = _with_rates(SlamOptions(), rates)
         if estimator_process is not None:
             options.estimator_process = estimator_process
         run_slam(options, recording, out, overwrite=True)
@@ -557,12 +557,23 @@ def _drone_positions(video: Path, session: Path) -> Trajectory | None:
     return Trajectory(start_ns + times_ns, poses)
 
 
+def _with_rates(options: SlamOptions, rates: dict[str, float | None] | None) -> SlamOptions:
+    """`options` with the image rate fields of `rates` (max_rate_hz, min_rate_hz) set."""
+    for name, value in (rates or {}).items():
+        setattr(options, name, value)
+    return options
+
+
 def _path_m(positions: FloatArray) -> float:
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
 
 
 def run_real(
-    recording: RealRecording, work: Path, *, width: int | None, max_rate_hz: float | None = None
+    recording: RealRecording,
+    work: Path,
+    *,
+    width: int | None,
+    rates: dict[str, float | None] | None = None,
 ) -> dict[str, object]:
     """slam (the stage's `run`), then the consistency figures; a failure is a row."""
     from postproc.slam.inputs import open_input
@@ -573,7 +584,7 @@ def run_real(
         row["images"] = open_input(source).frame_count
         out = work / f"slam_{recording.name}"
         frontend = FrontendOptions() if width is None else FrontendOptions(width_px=width)
-        options = SlamOptions(frontend=frontend, use_imu=recording.use_imu, max_rate_hz=max_rate_hz)
+        options = _with_rates(SlamOptions(frontend=frontend, use_imu=recording.use_imu), rates)
         started = time.monotonic()
         run_slam(options, source, out, overwrite=True)
         row["run_s"] = time.monotonic() - started
@@ -683,7 +694,11 @@ def _format_real(row: dict[str, object]) -> str:
 
 
 def real(
-    work: Path, *, width: int | None, only: list[str] | None, max_rate_hz: float | None = None
+    work: Path,
+    *,
+    width: int | None,
+    only: list[str] | None,
+    rates: dict[str, float | None] | None = None,
 ) -> None:
     """The consistency table over every real recording (see the module docstring)."""
     print(
@@ -695,7 +710,7 @@ def real(
     for recording in real_recordings(SHARED_DATA):
         if only and recording.name not in only:
             continue
-        row = run_real(recording, work / "real", width=width, max_rate_hz=max_rate_hz)
+        row = run_real(recording, work / "real", width=width, rates=rates)
         print(_format_real(row), flush=True)
 
 
@@ -737,12 +752,23 @@ def main() -> None:
         help="with --speed or --real: SlamOptions.max_rate_hz (default: the stage's default)",
     )
     parser.add_argument(
+        "--min-rate-hz",
+        type=float,
+        help="with --speed or --real: SlamOptions.min_rate_hz, 0 for none (every image; "
+        "default: the stage's default)",
+    )
+    parser.add_argument(
         "--only", nargs="*", help="with --real: these recordings (handheld_a, karma, ...)"
     )
     parser.add_argument("--long-minutes", type=float, default=45.0)
     parser.add_argument("--window", type=int, default=300, help="smoother window, keyframes")
     args = parser.parse_args()
     os.environ.setdefault("WRECKMAP_PROGRESS", "0")
+    rates: dict[str, float | None] = {}
+    if args.max_rate_hz is not None:
+        rates["max_rate_hz"] = args.max_rate_hz
+    if args.min_rate_hz is not None:
+        rates["min_rate_hz"] = args.min_rate_hz or None
     if args.long:
         long_dive(args.long_minutes, args.window)
         return
@@ -754,12 +780,12 @@ def main() -> None:
             seed=args.seed,
             inputs=args.speed_inputs,
             estimator_process=args.estimator_process,
-            max_rate_hz=args.max_rate_hz,
+            rates=rates,
         )
         return
     if args.real:
         width = args.width if "--width" in sys.argv else None
-        real(args.work, width=width, only=args.only, max_rate_hz=args.max_rate_hz)
+        real(args.work, width=width, only=args.only, rates=rates)
         return
     args.work.mkdir(parents=True, exist_ok=True)
     feature_level(args.duration, [0, 1, 2])

@@ -16,7 +16,13 @@ import pytest
 
 from postproc.slam.frontend import FrontendOptions
 from postproc.slam.inputs import open_input
-from postproc.slam.stage import SlamOptions, min_frame_step_ns, run
+from postproc.slam.stage import (
+    THINNING_PROBE_FRAMES,
+    RateThinning,
+    SlamOptions,
+    min_frame_step_ns,
+    run,
+)
 from shared.calibration.kalibr import read_camchain, read_imu_yaml, write_camchain, write_imu_yaml
 from shared.errors import InputError, OutputExistsError, StageError
 from shared.formats.euroc import read_euroc
@@ -607,3 +613,31 @@ def test_ctrl_c_stops_the_stage_and_its_estimator_process(wall_euroc: Path, tmp_
         time.sleep(0.1)
     assert not Path(f"/proc/{worker}").exists()
     assert not (tmp_path / "slam").exists()
+
+
+@pytest.mark.parametrize(
+    ("fps", "stride"),
+    [(30.0, 2), (30000 / 1001, 2), (60.0, 4), (24.0, 1), (20.0, 1), (45.0, 3)],
+)
+def test_rate_thinning_takes_every_kth_image_of_a_fast_recording(fps: float, stride: int) -> None:
+    thinning = RateThinning(15.0)
+    rng = np.random.default_rng(0)
+    # 2 ms of stamp jitter, as a camera clock gives.
+    stamps = (np.arange(300) / fps * 1e9 + rng.uniform(-2e6, 2e6, 300)).astype(np.int64)
+    kept = [int(s) for s in stamps if thinning.keep(int(s))]
+    assert thinning.stride == stride
+    probe = THINNING_PROBE_FRAMES + 1
+    assert kept[:probe] == stamps[:probe].tolist()  # the probe's images all go through
+    assert kept[probe:] == stamps[probe - 1 + stride :: stride].tolist()
+
+
+def test_rate_thinning_keeps_a_camera_that_alternates_short_and_long_steps() -> None:
+    # The real hand-held recording: 33 and 60 ms steps, about 19 images a second.
+    steps = np.tile([33_000_000, 60_000_000], 100)
+    stamps = np.concatenate([[0], np.cumsum(steps)])
+    thinning = RateThinning(15.0)
+    assert all(thinning.keep(int(s)) for s in stamps) and thinning.stride == 1
+    every = RateThinning(None)
+    assert all(every.keep(int(s)) for s in np.arange(100) * 10_000_000)
+    with pytest.raises(InputError, match="min_rate_hz 0"):
+        RateThinning(0.0)
