@@ -98,8 +98,7 @@ def test_max_heromode_is_detected_as_stabilised_and_gives_a_gravity_aligned_smoo
     assert stats["gyro_check_unexplained"] > 0.5
     assert stats["mode"].startswith("stabilised video")
     trajectory = read_tum(out / "trajectory.tum")
-    # 10.5 s at 15 of its 30 images a second (SlamOptions.min_rate_hz), inside the keyframes.
-    assert stats["frame_stride"] == 2 and stats["frames"] == len(trajectory) >= 150
+    assert stats["frames"] == len(trajectory) >= 250  # 10.5 s at 30 fps, inside the keyframes
     _assert_covers_the_video(session, out)
     assert stats["keyframes"] >= 10 and stats["landmarks"] >= 300
     assert np.all(np.isfinite(trajectory.poses))
@@ -130,9 +129,8 @@ def _video_stamps_ns(session: Path) -> np.ndarray:
 def _assert_covers_the_video(session: Path, out: Path, share: float = 0.9) -> None:
     video = _video_stamps_ns(session)
     trajectory = read_tum(out / "trajectory.tum")
-    # Every k-th image of a fast video (SlamOptions.min_rate_hz; a 30 fps GoPro: 2).
-    stride = json.loads((out / "stats.json").read_text())["frame_stride"]
-    assert stride == 2 and len(trajectory) >= share * len(video) / stride
+    assert json.loads((out / "stats.json").read_text())["frame_stride"] == 1  # every image
+    assert len(trajectory) >= share * len(video)
     span = (trajectory.stamps_ns[-1] - trajectory.stamps_ns[0]) / (video[-1] - video[0])
     assert span >= share
 

@@ -80,8 +80,7 @@ def test_simulated_gopro_session_matches_truth(tmp_path: Path) -> None:
         int(on_true_clock.stamps_ns[0]), int(on_true_clock.stamps_ns[-1])
     ).path_length_m()
     stats = json.loads((out / "stats.json").read_text())
-    # 12 s of 30 fps H.264, every other image tracked (SlamOptions.min_rate_hz 15).
-    assert stats["frame_stride"] == 2 and stats["frames"] >= 175
+    assert stats["frames"] >= 300  # 12 s at 30 fps, all decoded from H.264
     assert len(error.errors_m) >= 0.9 * len(estimate)
     # The target is 1 % of the distance travelled.
     assert error.rmse_m < 0.01 * path_m, (error.rmse_m, path_m)

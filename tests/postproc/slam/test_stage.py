@@ -130,7 +130,7 @@ def test_frame_step_keeps_every_third_image_of_a_jittery_30_fps_stream() -> None
         min_frame_step_ns(0)
 
 
-def test_max_rate_uses_part_of_the_images_and_stays_accurate(
+def test_max_and_min_rate_use_part_of_the_images_and_stay_accurate(
     wall_euroc: Path, tmp_path: Path
 ) -> None:
     options = SlamOptions(frontend=FrontendOptions(width_px=0), max_rate_hz=5.0)
@@ -142,8 +142,19 @@ def test_max_rate_uses_part_of_the_images_and_stays_accurate(
     assert set(trajectory.stamps_ns.tolist()) <= set(truth.image_stamps_ns.tolist())
     assert truth.groundtruth is not None
     assert ate(trajectory, truth.groundtruth, align="se3").rmse_m < 0.05
+    # A floor instead: 10 fps is twice 5 Hz, so every other image after the first 16.
+    options = SlamOptions(frontend=FrontendOptions(width_px=0), min_rate_hz=5.0)
+    out = run(options, wall_euroc, tmp_path / "thinned")
+    thinned = read_tum(out / "trajectory.tum")
+    images = truth.image_stamps_ns.tolist()
+    assert json.loads((out / "stats.json").read_text())["frame_stride"] == 2
+    probe = THINNING_PROBE_FRAMES + 1
+    assert thinned.stamps_ns.tolist() == images[:probe] + images[probe + 1 :: 2]
+    assert ate(thinned, truth.groundtruth, align="se3").rmse_m < 0.05
     with pytest.raises(InputError, match="max_rate_hz -1"):
         run(SlamOptions(max_rate_hz=-1.0), wall_euroc, tmp_path / "bad")
+    with pytest.raises(InputError, match="min_rate_hz -1"):
+        run(SlamOptions(min_rate_hz=-1.0), wall_euroc, tmp_path / "bad")
     with pytest.raises(InputError, match="max_speed_m_s -2: expected a positive speed"):
         run(SlamOptions(max_speed_m_s=-2.0), wall_euroc, tmp_path / "bad")
     assert not (tmp_path / "bad").exists()
