@@ -369,8 +369,8 @@ class SlamOptions:
         fourth; EuRoC's 20 Hz, a 24 fps video or a camera at 19 fps every image. Off
         by default: faster, a little less accurate. At 15, bench_pipeline.py's
         10-minute 960x540 dive: SLAM 181 s against 250 s (3.3x real time), ATE 1.7
-        against 1.5 cm, SfM 1.0 against 0.9 cm, mesh 97.3 / 55.9 % against 97.2 / 58.4
-        % at 5 cm; bench_slam.py --speed (60 s): 3.85 / 4.38x against 2.40 / 2.78x
+        against 1.5 cm, SfM 1.0 against 0.9 cm, mesh at 5 cm 97.3 / 55.9 % against
+        97.2 / 58.4 %; bench_slam.py --speed (60 s): 3.85 / 4.38x against 2.40 / 2.78x
         real time from PNG / H.264, ATE 6.9 / 14.5 mm against 5.2 / 11.5 mm.
     min_tracks_ok: a frame with fewer tracked features counts as a tracking failure.
     max_speed_m_s: a keyframe-to-keyframe speed above this (m/s) means the estimate has

@@ -662,9 +662,8 @@ def _track_frames(
     estimator.
 
     The first `max_frames` of `frames` that `thinning` keeps are taken (None: all). With
-    `imu`, the gyro
-    rotation since the previous image seeds the tracking, less the bias `biases` gives
-    for it.
+    `imu`, the gyro rotation since the previous image seeds the tracking, less the bias
+    `biases` gives for it.
     """
     previous_stamp: int | None = None
     sequence = 0
@@ -722,8 +721,9 @@ class RateThinning:
     """Every k-th image of a recording at k or more times `min_rate_hz` (k whole; None:
     every image). The rate is the mean step of the first `THINNING_PROBE_FRAMES` + 1
     stamps (all of them kept): a mean, so a camera that alternates 33 and 60 ms steps
-    counts as the 19 fps it is. Then an image is kept when it is at least k - 1/2 mean
-    steps after the last one kept (stamp jitter does not drop a second one)."""
+    counts as the 19 fps it is; k allows 2 % (29.97 fps is twice 15 Hz). Then an image
+    is kept when it is at least k - 1/2 mean steps after the last one kept (stamp
+    jitter does not drop a second one)."""
 
     def __init__(self, min_rate_hz: float | None) -> None:
         if min_rate_hz is not None and not min_rate_hz > 0:
