@@ -90,7 +90,7 @@ from shared.clock import NS_PER_S, ns_from_seconds, seconds_from_ns
 from shared.errors import InputError, StageError
 from shared.folders import SlamFolder, rebuild, result_stamp
 from shared.formats.ply import PlyData, ply_bytes
-from shared.progress import progress
+from shared.progress import progress_bar
 from shared.trajectory import Trajectory
 
 LOG = logging.getLogger(__name__)
@@ -412,12 +412,16 @@ def _build(
         if in_a_process
         else InProcessEstimator(setup, publish=biases.publish, on_keyframe=save)
     )
+    # The bar counts the recording's images, used or not, so a rate cap or thinning still
+    # ends at 100 % with a true ETA (with `max_frames`, the images used).
+    bar = progress_bar(total=total or None, desc="slam", unit="frame")
     try:
         try:
-            for sequence, item in enumerate(
-                progress(stream, total=total, desc="slam", unit="frame")
-            ):
+            for sequence, item in enumerate(stream):
                 frame, tracks = item.frame, item.tracks
+                bar.update(
+                    (sequence if options.max_frames is not None else frame.index) + 1 - bar.n
+                )
                 if len(tracks.track_ids) < options.min_tracks_ok:
                     tracking_failures += 1
                 # (Outside the IMU's span an image is tracked, so the tracks run on, but
@@ -427,7 +431,10 @@ def _build(
                 if estimate:
                     first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
                     last_stamp = frame.stamp_ns
+            if bar.total is not None and options.max_frames is None:
+                bar.update(bar.total - bar.n)  # the images after the last one used were read
         finally:
+            bar.close()
             biases.close()
             close = getattr(stream, "close", None)
             if close is not None:

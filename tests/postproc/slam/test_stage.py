@@ -131,8 +131,12 @@ def test_frame_step_keeps_every_third_image_of_a_jittery_30_fps_stream() -> None
 
 
 def test_max_and_min_rate_use_part_of_the_images_and_stay_accurate(
-    wall_euroc: Path, tmp_path: Path
+    wall_euroc: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
 ) -> None:
+    monkeypatch.setenv("WRECKMAP_PROGRESS", "1")
     options = SlamOptions(frontend=FrontendOptions(width_px=0), max_rate_hz=5.0)
     out = run(options, wall_euroc, tmp_path / "slam")
     trajectory = read_tum(out / "trajectory.tum")
@@ -142,14 +146,17 @@ def test_max_and_min_rate_use_part_of_the_images_and_stay_accurate(
     assert set(trajectory.stamps_ns.tolist()) <= set(truth.image_stamps_ns.tolist())
     assert truth.groundtruth is not None
     assert ate(trajectory, truth.groundtruth, align="se3").rmse_m < 0.05
+    # The bar counted the recording's images, not only the ones used: it ended full.
+    images = len(truth.image_stamps_ns)
+    assert f"{images}/{images}" in capfd.readouterr().err
     # A floor instead: 10 fps is twice 5 Hz, so every other image after the first 16.
     options = SlamOptions(frontend=FrontendOptions(width_px=0), min_rate_hz=5.0)
     out = run(options, wall_euroc, tmp_path / "thinned")
     thinned = read_tum(out / "trajectory.tum")
-    images = truth.image_stamps_ns.tolist()
+    stamps = truth.image_stamps_ns.tolist()
     assert json.loads((out / "stats.json").read_text())["frame_stride"] == 2
     probe = THINNING_PROBE_FRAMES + 1
-    assert thinned.stamps_ns.tolist() == images[:probe] + images[probe + 1 :: 2]
+    assert thinned.stamps_ns.tolist() == stamps[:probe] + stamps[probe + 1 :: 2]
     assert ate(thinned, truth.groundtruth, align="se3").rmse_m < 0.05
     with pytest.raises(InputError, match="max_rate_hz -1"):
         run(SlamOptions(max_rate_hz=-1.0), wall_euroc, tmp_path / "bad")
