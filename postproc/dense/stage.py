@@ -730,13 +730,14 @@ def pair_support(
         index = owners[group]
         view = views[k]
         cam = points[index] @ view.cam_from_world[:3, :3].T + view.cam_from_world[:3, 3]
-        np.maximum.at(depth, index, np.where(cam[:, 2] > 0, cam[:, 2], np.inf))
+        front = cam[:, 2] > 0
+        np.maximum.at(depth, index, np.where(front, cam[:, 2], np.inf))
         path = workspace.support_map_path(view.name)
         if not path.is_file():
             result[index] = 0
             continue
         grown = cv2.dilate(read_array(path), np.ones((3, 3), np.uint8))
-        z = np.where(cam[:, 2] > 0, cam[:, 2], np.nan)
+        z = np.where(front, cam[:, 2], np.nan)
         with np.errstate(invalid="ignore"):
             u = np.floor(view.K[0, 0] * cam[:, 0] / z + view.K[0, 2])
             v = np.floor(view.K[1, 1] * cam[:, 1] / z + view.K[1, 2])

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.calibration.kalibr import CameraCalibration, ImuNoise
-from shared.formats.recordings import Frame, Recording, open_recording
+from shared.formats.recordings import Frame, Keep, Recording, open_recording
 from shared.imu import ImuCleaning, ImuSamples
 
 __all__ = ["Frame", "SlamInput", "open_input"]
@@ -62,11 +62,12 @@ class SlamInput:
         """Number of images (for the progress bar; 0 when the container does not say)."""
         return self.recording.frame_count or 0
 
-    def frames(self, *, min_step_ns: int = 0) -> Iterator[Frame]:
+    def frames(self, *, min_step_ns: int = 0, keep: Keep | None = None) -> Iterator[Frame]:
         """Images in time order, as decoded (grey or BGR), PNG bytes kept as recorded;
-        none closer than `min_step_ns` to the last one given (0: all), the others not
-        decoded where the recording allows (see `shared.formats.recordings`)."""
-        return self.recording.frames(min_step_ns=min_step_ns)
+        none closer than `min_step_ns` to the last one given (0: all), or those whose
+        stamps `keep` passes; the others not decoded where the recording allows (see
+        `shared.formats.recordings`)."""
+        return self.recording.frames(min_step_ns=min_step_ns, keep=keep)
 
 
 def open_input(path: Path | str) -> SlamInput:

@@ -283,8 +283,8 @@ def _build(
     imu_yaml: Path | str | None,
 ) -> None:
     """The SLAM run itself, written into the empty folder `folder`."""
-    min_frame_step_ns(options.max_rate_hz)  # a bad rate is refused before any work
-    thinning = RateThinning(options.min_rate_hz)
+    # The images to use (a bad rate is refused before any work).
+    thinning = RateThinning(options.min_rate_hz, min_step_ns=min_frame_step_ns(options.max_rate_hz))
     if options.max_speed_m_s is not None and not options.max_speed_m_s > 0:
         raise InputError(
             f"max_speed_m_s {options.max_speed_m_s:g}: expected a positive speed (m/s), "
@@ -376,14 +376,14 @@ def _build(
     main_cpu_start = time.thread_time()
     biases = BiasBoard(setup.initial_gyro_bias(), lag=PIPELINE_LAG_FRAMES)
     tracked = _track_frames(
-        # (Images the rate cap drops are not even decoded where the recording allows.)
-        source.frames(min_step_ns=min_frame_step_ns(options.max_rate_hz)),
+        # (Images the rate cap or thinning drops are not even decoded where the recording
+        # allows.)
+        source.frames(keep=thinning.keep),
         frontend,
         imu=setup.imu,
         calibration=calibration,
         biases=biases,
         max_frames=options.max_frames,
-        thinning=thinning,
         cpu_s=thread_cpu_s,
     )
     first_stamp: int | None = None
@@ -662,22 +662,21 @@ def _track_frames(
     calibration: CameraCalibration,
     biases: BiasBoard,
     max_frames: int | None,
-    thinning: RateThinning | None = None,
     cpu_s: dict[str, float] | None = None,
 ) -> Iterator[TrackedFrame]:
     """Decoded and prepared (one thread ahead), then tracked images, in order, for the
     estimator.
 
-    The first `max_frames` of `frames` that `thinning` keeps are taken (None: all). With
-    `imu`, the gyro rotation since the previous image seeds the tracking, less the bias
-    `biases` gives for it.
+    The first `max_frames` of `frames` are taken (None: all). With `imu`, the gyro
+    rotation since the previous image seeds the tracking, less the bias `biases` gives
+    for it.
     """
     previous_stamp: int | None = None
     sequence = 0
     # The decoding thread also makes the frontend image (grey, resized, CLAHE): the
     # tracking thread is the longest of the three.
     decoded = prefetch(
-        _prepared(frames, frontend, max_frames=max_frames, thinning=thinning),
+        _prepared(frames, frontend, max_frames=max_frames),
         name="slam-decode",
         cpu_s=cpu_s,
     )
@@ -703,21 +702,12 @@ def _track_frames(
 
 
 def _prepared(
-    frames: Iterable[Frame],
-    frontend: KltFrontend,
-    *,
-    max_frames: int | None,
-    thinning: RateThinning | None = None,
+    frames: Iterable[Frame], frontend: KltFrontend, *, max_frames: int | None
 ) -> Iterator[tuple[Frame, Image]]:
-    """The frames to track (the first `max_frames` that `thinning` keeps) with their
-    frontend images."""
-    count = 0
-    for frame in frames:
+    """The frames to track (the first `max_frames`) with their frontend images."""
+    for count, frame in enumerate(frames):
         if max_frames is not None and count >= max_frames:
             break
-        if thinning is not None and not thinning.keep(frame.stamp_ns):
-            continue
-        count += 1
         yield frame, frontend.prepare(frame.image)
 
 
@@ -725,14 +715,17 @@ THINNING_PROBE_FRAMES = 15
 
 
 class RateThinning:
-    """Every k-th image of a recording at k or more times `min_rate_hz` (k whole; None:
-    every image). The rate is the mean step of the first `THINNING_PROBE_FRAMES` + 1
-    stamps (all of them kept): a mean, so a camera that alternates 33 and 60 ms steps
-    counts as the 19 fps it is; k allows 2 % (29.97 fps is twice 15 Hz). Then an image
-    is kept when it is at least k - 1/2 mean steps after the last one kept (stamp
-    jitter does not drop a second one)."""
+    """The images to use, as a recording's `keep` test: none closer than `min_step_ns` to
+    the last one used (the `max_rate_hz` cap, `min_frame_step_ns`), and every k-th image
+    of a recording at k or more times `min_rate_hz` (k whole; None: every image).
 
-    def __init__(self, min_rate_hz: float | None) -> None:
+    The rate is the mean step of the first `THINNING_PROBE_FRAMES` + 1 stamps (only the
+    cap thins those): a mean, so a camera that alternates 33 and 60 ms steps counts as
+    the 19 fps it is; k allows 2 % (29.97 fps is twice 15 Hz). From then on an image is
+    used when it is at least k - 1/2 mean steps (and the cap) after the last one used:
+    stamp jitter does not drop a second one."""
+
+    def __init__(self, min_rate_hz: float | None, *, min_step_ns: int = 0) -> None:
         if min_rate_hz is not None and not min_rate_hz > 0:
             raise InputError(f"min_rate_hz {min_rate_hz}: expected a positive rate (Hz), or none")
         self.min_rate_hz = min_rate_hz
@@ -741,26 +734,27 @@ class RateThinning:
         self._first: int | None = None
         self._seen = 0
         self._last_kept: int | None = None
-        self._step_ns = 0
+        self._step_ns = min_step_ns
 
     def keep(self, stamp_ns: int) -> bool:
-        """Whether to use the image of `stamp_ns` (call once per image, in time order)."""
-        if self.min_rate_hz is None:
-            return True
+        """Whether to use the image of `stamp_ns` (asked once per image, in time order)."""
+        use = self._last_kept is None or stamp_ns - self._last_kept >= self._step_ns
+        if use:
+            self._last_kept = stamp_ns
         self._seen += 1
         if self._first is None:
             self._first = stamp_ns
-        elif self._seen == THINNING_PROBE_FRAMES + 1 and stamp_ns > self._first:
+        elif (
+            self.min_rate_hz is not None
+            and self._seen == THINNING_PROBE_FRAMES + 1
+            and stamp_ns > self._first
+        ):
             mean_step_s = seconds_from_ns(stamp_ns - self._first) / THINNING_PROBE_FRAMES
             self.stride = max(int(1.02 / (mean_step_s * self.min_rate_hz)), 1)
             if self.stride > 1:
-                self._step_ns = ns_from_seconds((self.stride - 0.5) * mean_step_s)
-            self._last_kept = stamp_ns  # the probe's last image
-            return True
-        if self._last_kept is not None and stamp_ns - self._last_kept < self._step_ns:
-            return False
-        self._last_kept = stamp_ns
-        return True
+                stride_ns = ns_from_seconds((self.stride - 0.5) * mean_step_s)
+                self._step_ns = max(self._step_ns, stride_ns)
+        return use
 
 
 def prefetch(

@@ -32,8 +32,9 @@ merged into one stream, each with one warning naming the file.
 
 Images are uint8 arrays as decoded (grey (H, W) or BGR (H, W, 3)), or the grey
 (H, W) luma with `grayscale=True`. `frames(min_step_ns=...)` thins them by time (the
-first image, then each one at least that long after the last one given): image files
-and stills are then not even read or decoded, a video decodes every frame (each
+first image, then each one at least that long after the last one given), or
+`frames(keep=...)` by any test of the stamps (`Keep`): image files and stills are then
+not even read or decoded, a video decodes every frame (each
 depends on the ones before) but converts only those it gives. A path that is no
 recording raises one InputError naming the path and the kinds expected.
 """
@@ -135,9 +136,12 @@ class Recording(Protocol):
         """Whether it holds IMU rows at all."""
         ...
 
-    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
+    def frames(
+        self, *, grayscale: bool = False, min_step_ns: int = 0, keep: Keep | None = None
+    ) -> Iterator[Frame]:
         """The images in time order, none closer than `min_step_ns` to the last one given
-        (0: every image)."""
+        (0: every image); or, with `keep`, those whose stamps it passes (asked once per
+        image, in order). Images left out are not decoded where the kind allows."""
         ...
 
     def imu(self) -> tuple[ImuSamples, ImuCleaning]:
@@ -155,7 +159,11 @@ def _decode(data: bytes, where: str, *, grayscale: bool) -> Image:
     return np.asarray(image)
 
 
-def spaced_by(min_step_ns: int) -> Callable[[int], bool]:
+Keep = Callable[[int], bool]
+"""A test of each image's stamp (ns), asked once per image in time order: use it?"""
+
+
+def spaced_by(min_step_ns: int) -> Keep:
     """A test for increasing stamps (ns): true for the first, then for each one at least
     `min_step_ns` after the last one it passed (0: for every stamp)."""
     last: int | None = None
@@ -171,9 +179,8 @@ def spaced_by(min_step_ns: int) -> Callable[[int], bool]:
 
 
 def _image_files(
-    paths: list[Path], stamps_ns: list[int], grayscale: bool, min_step_ns: int
+    paths: list[Path], stamps_ns: list[int], grayscale: bool, keep: Keep
 ) -> Iterator[Frame]:
-    keep = spaced_by(min_step_ns)
     for index, (path, stamp) in enumerate(zip(paths, stamps_ns, strict=True)):
         if not keep(int(stamp)):
             continue
@@ -239,9 +246,12 @@ class EurocRecording:
     def has_imu(self) -> bool:
         return (self._mav / "imu0" / "data.csv").is_file()
 
-    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
+    def frames(
+        self, *, grayscale: bool = False, min_step_ns: int = 0, keep: Keep | None = None
+    ) -> Iterator[Frame]:
         stamps = self._data.image_stamps_ns.tolist()
-        yield from _image_files(self._data.image_paths, stamps, grayscale, min_step_ns)
+        chosen = keep or spaced_by(min_step_ns)
+        yield from _image_files(self._data.image_paths, stamps, grayscale, chosen)
 
     def imu(self) -> tuple[ImuSamples, ImuCleaning]:
         where = f"{self.path}: mav0/imu0/data.csv"
@@ -335,31 +345,32 @@ class SessionRecording:
     def has_imu(self) -> bool:
         return self._schemas.get(self.imu_topic) == _IMU_SCHEMA
 
-    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
+    def frames(
+        self, *, grayscale: bool = False, min_step_ns: int = 0, keep: Keep | None = None
+    ) -> Iterator[Frame]:
         if self.camera_topic not in self._schemas:
             raise self._no_camera()
         if self._schemas[self.camera_topic] == _VIDEO_SCHEMA:
             from shared.archive.video import SessionVideo
 
-            spaced = spaced_by(min_step_ns)
-            index = -1  # of the last frame `keep` was asked about: the one given next
+            chosen = keep or spaced_by(min_step_ns)
+            index = -1  # of the last frame `counted` was asked about: the one given next
 
-            def keep(stamp_ns: int) -> bool:
+            def counted(stamp_ns: int) -> bool:
                 nonlocal index
                 index += 1
-                return spaced(stamp_ns)
+                return chosen(stamp_ns)
 
             with SessionVideo(self.path, topic=self.camera_topic, grayscale=grayscale) as video:
-                for frame in video.frames(keep=keep):
+                for frame in video.frames(keep=counted):
                     yield Frame(index, frame.stamp_ns, frame.image)
             return
-        yield from self._stills(grayscale, min_step_ns)
+        yield from self._stills(grayscale, keep or spaced_by(min_step_ns))
 
-    def _stills(self, grayscale: bool, min_step_ns: int) -> Iterator[Frame]:
+    def _stills(self, grayscale: bool, keep: Keep) -> Iterator[Frame]:
         from shared.archive import ArchiveReader, CompressedImage
 
         index = -1
-        keep = spaced_by(min_step_ns)
         for archive in self.archives:
             with ArchiveReader(archive) as reader:
                 for _, _, message in reader.messages([self.camera_topic]):
@@ -455,8 +466,12 @@ class ImageFolderRecording(_NoImu):
     def frame_count(self) -> int | None:
         return len(self.files)
 
-    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
-        yield from _image_files(self.files, self.stamps_ns, grayscale, min_step_ns)
+    def frames(
+        self, *, grayscale: bool = False, min_step_ns: int = 0, keep: Keep | None = None
+    ) -> Iterator[Frame]:
+        yield from _image_files(
+            self.files, self.stamps_ns, grayscale, keep or spaced_by(min_step_ns)
+        )
 
 
 class VideoFileRecording(_NoImu):
@@ -474,7 +489,9 @@ class VideoFileRecording(_NoImu):
         except (av.error.FFmpegError, IndexError):
             raise InputError(f"{self.path}: no video stream PyAV can open") from None
 
-    def frames(self, *, grayscale: bool = False, min_step_ns: int = 0) -> Iterator[Frame]:
+    def frames(
+        self, *, grayscale: bool = False, min_step_ns: int = 0, keep: Keep | None = None
+    ) -> Iterator[Frame]:
         import av
 
         try:
@@ -487,13 +504,13 @@ class VideoFileRecording(_NoImu):
             stream = container.streams.video[0]
             first: int | None = None
             fmt = "gray" if grayscale else "bgr24"
-            keep = spaced_by(min_step_ns)
+            chosen = keep or spaced_by(min_step_ns)
             for index, frame in enumerate(container.decode(stream)):
                 if frame.pts is None or frame.time_base is None:
                     raise InputError(f"{self.path}: frame {index} has no time stamp")
                 stamp = round(frame.pts * frame.time_base * NS_PER_S)
                 first = stamp if first is None else first
-                if not keep(int(stamp - first)):
+                if not chosen(int(stamp - first)):
                     continue
                 image = np.asarray(frame.to_ndarray(format=fmt), dtype=np.uint8)
                 yield Frame(index, int(stamp - first), image)

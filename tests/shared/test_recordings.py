@@ -237,6 +237,19 @@ def test_thinned_frames_are_not_read_or_decoded_and_keep_their_index(tmp_path: P
     assert [f.index for f in kept] == [0, 2, 4]
     assert [f.stamp_ns for f in kept] == [every[i].stamp_ns for i in (0, 2, 4)]
     np.testing.assert_array_equal(kept[1].image, every[2].image)
+    # Any test of the stamps instead of the step: each kind asks it once per image (and
+    # the EuRoC's broken image 3 is again never read).
+    for recording, count in ((euroc, 6), (session, 5), (clip, 6)):
+        asked: list[int] = []
+
+        def even_ones(stamp_ns: int, asked: list[int] = asked) -> bool:
+            asked.append(stamp_ns)
+            return len(asked) % 2 == 1
+
+        chosen = list(recording.frames(keep=even_ones))
+        assert len(asked) == count
+        assert [f.index for f in chosen] == list(range(0, count, 2))
+        assert [f.stamp_ns for f in chosen] == asked[::2]
 
 
 def test_a_path_that_is_no_recording_names_the_kinds(tmp_path: Path) -> None:

@@ -649,6 +649,15 @@ def test_rate_thinning_takes_every_kth_image_of_a_fast_recording(fps: float, str
     assert kept[probe:] == stamps[probe - 1 + stride :: stride].tolist()
 
 
+def test_rate_thinning_also_holds_the_rate_cap_from_the_first_image() -> None:
+    stamps = [round(k * 1e9 / 30) for k in range(90)]
+    capped = RateThinning(15.0, min_step_ns=min_frame_step_ns(10.0))
+    assert [s for s in stamps if capped.keep(s)] == stamps[::3]  # 10 of 30 a second
+    assert capped.stride == 2  # (the floor's step is the shorter one)
+    alone = RateThinning(None, min_step_ns=min_frame_step_ns(10.0))
+    assert [s for s in stamps if alone.keep(s)] == stamps[::3] and alone.stride == 1
+
+
 def test_rate_thinning_keeps_a_camera_that_alternates_short_and_long_steps() -> None:
     # The real hand-held recording: 33 and 60 ms steps, about 19 images a second.
     steps = np.tile([33_000_000, 60_000_000], 100)
