@@ -4,7 +4,7 @@ the simulated wreck, and AprilGrid detection quality on the real photos.
     .venv/bin/python bench/bench_merge.py [--seeds 5] [--sessions 2] [--outliers 0.1]
     .venv/bin/python bench/bench_merge.py --scene fieldsim --seeds 8 [--cache DIR]
     .venv/bin/python bench/bench_merge.py --scene fieldsim --every-keyframe --features \
-        --seeds 8 --no-photos --cache DIR
+        --seeds 8 --no-photos --cache DIR [--sfm]
 
 Synthetic (`sim.targets.make_survey`): two grids like the Pamir's
 (4x2 and 5x4 tags of 88 mm, 10 m apart on a tilted deck), dives filming each
@@ -64,6 +64,21 @@ the natural-feature analogue of the at-targets error. With every keyframe the
 target rows see the grids from further and more obliquely than in the default
 scene, so their figures differ from a run without `--every-keyframe`.
 
+After SfM (`--sfm`, wreck only): the SfM stage (`postproc.sfm.stage.run`, default
+options) runs on the merge of the methods in `SFM_METHODS`, and two errors of the
+maps laid over each other are printed for the merged keyframes (before) and the
+refined ones (after), the same for every method:
+
+* maps: each session's keyframes are fitted rigidly to their true positions
+  (`A_k`, outlier keyframes left out); `inv(A_1) A_k` is how far session k's map as a
+  whole sits from where session 1's puts it: its rotation, and the RMS distance it
+  moves session k's keyframes. Unlike the session frame above it does not depend on
+  the drift at the session start, so it is defined after SfM too, where no `T_W_S`
+  is refined.
+* shared places: per keyframe pair filming the same structure (as above, true
+  poses), the relative pose of the two cameras against the truth: its rotation, and
+  the error of the point 2.5 m ahead of session k's camera seen from session 1's.
+
 "floor: exact at 1st sight" (wreck only): `T_S1_Sk` from targets known exactly
 at each session's first sighting. The drift before it is in every later keyframe
 and nothing observed tells it apart from the frame, so no target method beats
@@ -98,7 +113,14 @@ from shared.calibration.aprilgrid_detection import (
 )
 from shared.clock import seconds_from_ns
 from shared.folders import SlamFolder
-from shared.geometry import invert_pose, make_pose, pose_difference, rotation_mean_chordal
+from shared.geometry import (
+    invert_pose,
+    make_pose,
+    pose_difference,
+    rotation_angle_rad,
+    rotation_mean_chordal,
+    umeyama_pose,
+)
 from shared.trajectory import Trajectory
 from sim.targets import (
     SurveyOptions,
@@ -167,6 +189,9 @@ FEATURE_METHODS = (
     ),
 )
 NO_TARGETS = FEATURE_METHODS[0][0]
+#: The methods whose merge the SfM stage refines with `--sfm`: the paper's, the
+#: target-only row the feature rows compare with, and both feature rows.
+SFM_METHODS = ("paper (6 DoF, Euler)", "ours 6 DoF + tilt prior", *(n for n, _ in FEATURE_METHODS))
 #: The session-frame row no estimator can beat on average (wreck only, see `first_sighting_floor`).
 FLOOR = "floor: exact at 1st sight"
 
@@ -392,23 +417,88 @@ def shared_structure_references(
     """
     data = [np.load(root / f"truth_{name}.npz") for name in (reference, session)]
     world = [truth.world_from_session[reference], truth.world_from_session[session]]
-    cams = [w @ d["session_from_cam_true"] for w, d in zip(world, data, strict=True)]
-    ahead = [c[:, :3, 3] + 2.5 * c[:, :3, 2] for c in cams]
-    distance = np.linalg.norm(ahead[0][:, None] - ahead[1][None], axis=2)
-    cosine = np.einsum("id,jd->ij", cams[0][:, :3, 2], cams[1][:, :3, 2])
-    good = (distance < 1.0) & (cosine > np.cos(np.deg2rad(30.0)))
-    good &= ~data[0]["outlier"][:, None] & ~data[1]["outlier"][None]
-    pairs = np.argwhere(good)
-    if len(pairs) > limit:
-        pairs = pairs[np.linspace(0, len(pairs) - 1, limit).astype(int)]
     expected = invert_pose(world[0]) @ world[1]
     out = []
-    for i, j in pairs:
+    for i, j in _shared_pairs(data, world, limit):
         a1 = data[0]["session_from_cam_drift"][i] @ invert_pose(data[0]["session_from_cam_true"][i])
         ak = data[1]["session_from_cam_drift"][j] @ invert_pose(data[1]["session_from_cam_true"][j])
         point = data[1]["session_from_cam_drift"][j] @ np.array([0.0, 0.0, 2.5, 1.0])
         out.append((a1 @ expected @ invert_pose(ak), point[:3]))
     return out
+
+
+def _shared_pairs(
+    data: list[dict[str, npt.NDArray[np.generic]]], world: list[FloatArray], limit: int
+) -> npt.NDArray[np.int64]:
+    """Index pairs (i, j) of two sessions' keyframes filming the same structure.
+
+    data: each session's truth (`truth_<session>.npz`); world: their true `T_W_S`.
+    The points 2.5 m ahead of the true cameras lie within 1 m, the viewing directions
+    within 30 degrees, neither keyframe is an outlier; at most `limit` pairs, evenly
+    spread over the list.
+    """
+    cams = [
+        w @ np.asarray(d["session_from_cam_true"], np.float64)
+        for w, d in zip(world, data, strict=True)
+    ]
+    ahead = [c[:, :3, 3] + 2.5 * c[:, :3, 2] for c in cams]
+    distance = np.linalg.norm(ahead[0][:, None] - ahead[1][None], axis=2)
+    cosine = np.einsum("id,jd->ij", cams[0][:, :3, 2], cams[1][:, :3, 2])
+    good = (distance < 1.0) & (cosine > np.cos(np.deg2rad(30.0)))
+    good &= ~data[0]["outlier"][:, None].astype(bool) & ~data[1]["outlier"][None].astype(bool)
+    pairs = np.argwhere(good)
+    if len(pairs) > limit:
+        pairs = pairs[np.linspace(0, len(pairs) - 1, limit).astype(int)]
+    return pairs
+
+
+def overlay_errors(
+    root: Path,
+    truth: SurveyTruth,
+    reference: str,
+    session: str,
+    world_from_cam: dict[str, Trajectory],
+    *,
+    limit: int = 300,
+) -> tuple[tuple[float, float], list[tuple[float, float]]]:
+    """How well the estimated maps of `reference` and `session` lie over each other.
+
+    world_from_cam: each session's keyframe poses `T_W_C` as a stage wrote them (the
+    merge's keyframes, or the SfM's refined ones), at the simulator's keyframe stamps.
+    Returns ((rotation deg, RMS distance m) of session's map as a whole against the
+    reference's, the shared places' [(rotation deg, position error m)]); see the module
+    docstring ("After SfM").
+    """
+    names = (reference, session)
+    data = [dict(np.load(root / f"truth_{name}.npz")) for name in names]
+    world = [truth.world_from_session[name] for name in names]
+    to_reference = invert_pose(world[0])
+    true_cams, cams = [], []
+    for name, d, w in zip(names, data, world, strict=True):
+        index = {int(t): i for i, t in enumerate(world_from_cam[name].stamps_ns)}
+        rows = [index[int(t)] for t in d["stamps_ns"]]
+        cams.append(world_from_cam[name].poses[rows])
+        true_cams.append(to_reference @ w @ d["session_from_cam_true"])
+    fitted = []
+    for cam, true, d in zip(cams, true_cams, data, strict=True):
+        good = ~d["outlier"].astype(bool)
+        fitted.append(umeyama_pose(true[good, :3, 3], cam[good, :3, 3]))
+    misplaced = invert_pose(fitted[0]) @ fitted[1]
+    points = true_cams[1][:, :3, 3]
+    moved = points @ misplaced[:3, :3].T + misplaced[:3, 3] - points
+    maps = (
+        float(np.rad2deg(rotation_angle_rad(misplaced[:3, :3]))),
+        float(np.sqrt(np.mean(np.sum(moved**2, axis=1)))),
+    )
+    ahead = np.array([0.0, 0.0, 2.5, 1.0])
+    places = []
+    for i, j in _shared_pairs(data, world, limit):
+        estimate = invert_pose(cams[0][i]) @ cams[1][j]
+        expected = invert_pose(true_cams[0][i]) @ true_cams[1][j]
+        rotation, _ = pose_difference(estimate, expected)
+        position = np.linalg.norm((estimate - expected) @ ahead)
+        places.append((float(np.rad2deg(rotation)), float(position)))
+    return maps, places
 
 
 def memoise_features() -> None:
@@ -493,6 +583,79 @@ def _render(
     return root, folders, targets, truth
 
 
+def _sfm_errors(
+    name: str,
+    root: Path,
+    truth: SurveyTruth,
+    folders: list[Path],
+    merge: Path,
+    maps: dict[tuple[str, str], list[tuple[float, float]]],
+    places: dict[tuple[str, str], list[tuple[float, float]]],
+    times: list[float],
+) -> str:
+    """Run the SfM stage on `merge`; add the overlay errors before and after it."""
+    from postproc.sfm.stage import SfmOptions
+    from postproc.sfm.stage import run as run_sfm
+    from shared.folders import MergeFolder, SfmFolder
+
+    sessions = [Path(f).name for f in folders]
+    placed = MergeFolder(merge).read_transforms()
+    if not all(placed["sessions"][s]["placed"] for s in sessions):
+        return " (not all placed: no SfM)"
+    out = merge.with_name(merge.name + "_sfm")
+    start = time.perf_counter()
+    run_sfm(SfmOptions(), folders, out, merge=merge, overwrite=True)
+    times.append(time.perf_counter() - start)
+    poses = {
+        "before": {s: MergeFolder(merge).read_merged_keyframes(s) for s in sessions},
+        "after": {s: SfmFolder(out).read_session_keyframes_world(s) for s in sessions},
+    }
+    text = ""
+    for when, world_from_cam in poses.items():
+        for other in sessions[1:]:
+            whole, shared = overlay_errors(root, truth, sessions[0], other, world_from_cam)
+            maps.setdefault((name, when), []).append(whole)
+            places.setdefault((name, when), []).extend(shared)
+        text += f" maps {when} SfM {whole[0]:.3f} deg {100 * whole[1]:.1f} cm,"
+    return f" ({text.strip(' ,')}, SfM {times[-1]:.0f} s)"
+
+
+def print_sfm_table(
+    names: list[str],
+    maps: dict[tuple[str, str], list[tuple[float, float]]],
+    places: dict[tuple[str, str], list[tuple[float, float]]],
+    times: dict[str, list[float]],
+) -> None:
+    """The `--sfm` table: the maps laid over each other, before and after SfM."""
+    print()
+    print(
+        "maps laid over each other, merged keyframes -> after SfM (RMS over seeds x sessions; "
+        "maps: session k's map as a whole against session 1's, rotation and RMS distance "
+        "over its keyframes; places: relative pose at keyframe pairs filming the same "
+        "structure, rotation and the point 2.5 m ahead)"
+    )
+    print(
+        f"{'method':<28} {'maps deg':>15} {'maps cm':>13} {'places deg':>15} "
+        f"{'places cm':>13} {'pairs':>6} {'SfM s':>6}"
+    )
+    for name in names:
+        if (name, "after") not in maps:
+            print(f"{name:<28} (no run placed every session)")
+            continue
+        cells = []
+        for table in (maps, places):
+            before = np.sqrt(np.mean(np.square(table[(name, "before")]), axis=0))
+            after = np.sqrt(np.mean(np.square(table[(name, "after")]), axis=0))
+            cells += [
+                f"{before[0]:.3f} -> {after[0]:.3f}",
+                f"{100 * before[1]:.2f} -> {100 * after[1]:.2f}",
+            ]
+        print(
+            f"{name:<28} {cells[0]:>15} {cells[1]:>13} {cells[2]:>15} {cells[3]:>13} "
+            f"{len(places[(name, 'after')]):>6} {np.mean(times[name]):>6.1f}"
+        )
+
+
 def _rms(values: list[float]) -> float:
     return float(np.sqrt(np.mean(np.square(values)))) if values else float("nan")
 
@@ -555,7 +718,19 @@ def main() -> int:
     parser.add_argument(
         "--cache", help="keep the rendered folders here and reuse them (same seed and settings)"
     )
+    parser.add_argument(
+        "--sfm",
+        action="store_true",
+        help="fieldsim: also run the SfM stage on the merges of SFM_METHODS; maps laid over "
+        "each other before and after it",
+    )
     args = parser.parse_args()
+    if args.sfm and args.scene != "fieldsim":
+        parser.error("--sfm needs --scene fieldsim (the wreck's per-keyframe truth)")
+    if args.sfm:
+        import pycolmap
+
+        pycolmap.logging.minloglevel = 2  # errors only: the tables are the output
     if not args.no_photos:
         bench_photos()
     memoise_detections()
@@ -568,6 +743,11 @@ def main() -> int:
     local: dict[str, list[tuple[float, float]]] = {n: [] for n in [*names, "ideal rigid"]}
     times: dict[str, list[float]] = {n: [] for n in names}
     sigmas: dict[str, list[tuple[float, float]]] = {n: [] for n in names}
+    # --sfm: (method, "before"/"after") -> the maps' and the shared places' errors.
+    sfm_names = [n for n in names if args.sfm and n in SFM_METHODS]
+    maps: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    places: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    sfm_times: dict[str, list[float]] = {n: [] for n in sfm_names}
     with tempfile.TemporaryDirectory(prefix="bench_merge_") as tmp:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             start = time.perf_counter()
@@ -651,6 +831,10 @@ def main() -> int:
                         shared[name].extend(at_target_error(estimate, structure[k]))
                 rot_e, trans_e, _ = frame[name][-1]
                 line += f" {name}: {rot_e:.3f} deg {100 * trans_e:.1f} cm"
+                if name in sfm_names:
+                    line += _sfm_errors(
+                        name, root, truth, folders, out, maps, places, sfm_times[name]
+                    )
                 if at_targets:
                     here = np.array(local[name][-len(references[args.sessions]) :])
                     rot_t, pos_t = _rms(list(here[:, 0])), 100 * _rms(list(here[:, 1]))
@@ -713,6 +897,8 @@ def main() -> int:
                 f"  paper / {name}: rotation {lrms[names[0]][0] / lrms[name][0]:.1f}x, "
                 f"position {lrms[names[0]][1] / lrms[name][1]:.1f}x"
             )
+    if sfm_names:
+        print_sfm_table(sfm_names, maps, places, sfm_times)
     if any(shared.values()):
         print()
         print(
