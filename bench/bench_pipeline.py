@@ -47,6 +47,8 @@ def simulate(out: Path, *, minutes: float, args: argparse.Namespace) -> float:
     ]  # fmt: skip
     if args.euroc:
         command.append("--no-video")
+    if args.video_crf is not None:
+        command += ["--video-crf", str(args.video_crf)]
     started = time.monotonic()
     env = {**os.environ, "PYTHONPATH": str(REPO), "WRECKMAP_PROGRESS": "0"}
     subprocess.run(command, check=True, env=env)
@@ -316,6 +318,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_false",
         help="simulate the second length instead of cutting the first part of the dive",
     )
+    parser.add_argument(
+        "--video-crf",
+        type=int,
+        help="the simulator's x264 quality (default: the simulator's); the folders get a "
+        "_crfN suffix",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "bench-output" / "pipeline")
     parser.add_argument(
         "--quick-width",
@@ -332,10 +340,13 @@ def main(argv: list[str] | None = None) -> int:
     results: list[dict[str, float | str]] = []
     peaks: list[dict[str, float]] = []
     quick: list[dict[str, Any]] = []
-    long_root = args.out / f"{lengths[0]:g}min_{args.width}x{args.height}"
+    size = f"{args.width}x{args.height}" + (
+        f"_crf{args.video_crf}" if args.video_crf is not None else ""
+    )
+    long_root = args.out / f"{lengths[0]:g}min_{size}"
     for index, minutes in enumerate(lengths):
         if index == 1 and args.prefix:
-            root = args.out / f"{minutes:g}min_of_{lengths[0]:g}_{args.width}x{args.height}"
+            root = args.out / f"{minutes:g}min_of_{lengths[0]:g}_{size}"
             root.mkdir(parents=True, exist_ok=True)
             make_prefix(long_root / "sim", root / "sim", minutes=minutes)
             print(f"first {minutes:g} min of the {lengths[0]:g}-min dive (EuRoC, linked)")
@@ -346,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
                 quick.append(run_quick_look(root, root / "sim", euroc=True,
                                             width_px=args.quick_width))  # fmt: skip
             continue
-        root = args.out / f"{minutes:g}min_{args.width}x{args.height}"
+        root = args.out / f"{minutes:g}min_{size}"
         root.mkdir(parents=True, exist_ok=True)
         sim_s = simulate(root / "sim", minutes=minutes, args=args)
         print(

@@ -111,6 +111,8 @@ class SurveyOptions:
     sessions: number of dives (routes from `sim.motion.builtin_route`);
     duration_s: filmed seconds per session; seed: everything random derives from it;
     width, height (px), fps (Hz): the camera; video: also write the GoPro-like MP4;
+    video_crf: its x264 quality (constant rate factor, preset ultrafast; lower is better:
+    28 gives about 0.11 bit per pixel and frame on the wreck at 960x540);
     imu_rate_hz: IMU sample rate; timeshift_cam_imu_s: Kalibr's t_imu = t_cam + shift;
     texel_m, seafloor_texel_m: texture resolution (m per texel); workers: render processes;
     start_utc: true start of session 0 (ISO 8601, UTC); session_gap_s: between session
@@ -127,6 +129,7 @@ class SurveyOptions:
     height: int = 360
     fps: float = 15.0
     video: bool = True
+    video_crf: int = 28
     imu_rate_hz: float = 200.0
     timeshift_cam_imu_s: float = 0.0125
     texel_m: float = 0.005
@@ -153,6 +156,8 @@ class SurveyOptions:
             )
         if not 0 < self.fps <= 240:
             raise ValueError(f"fps must be in (0, 240], got {self.fps}")
+        if not 0 <= self.video_crf <= 51:
+            raise ValueError(f"video_crf must be in [0, 51] (x264), got {self.video_crf}")
         if abs(self.timeshift_cam_imu_s) >= 1.0:
             raise ValueError(
                 f"timeshift_cam_imu_s must be below 1 s, got {self.timeshift_cam_imu_s}"
@@ -604,7 +609,9 @@ def write_session(sim: SurveySimulator, session: int, folder: Path, bar: Any) ->
         if opt.video:
             from field.gopro.writer import encode_h264
 
-            stream = encode_h264(colour_frames(), fps=fps, gop_frames=max(round(fps), 1))
+            stream = encode_h264(
+                colour_frames(), fps=fps, gop_frames=max(round(fps), 1), crf=opt.video_crf
+            )
         else:
             for _ in colour_frames():
                 pass

@@ -34,6 +34,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     survey.add_argument("--no-video", action="store_true", help="skip the GoPro-like MP4")
     survey.add_argument(
+        "--video-crf", type=int, default=28, help="x264 quality of the MP4 (lower: better)"
+    )
+    survey.add_argument(
         "--depth", action="store_true", help="also write depth maps (16-bit PNG, mm)"
     )
     survey.add_argument("--overwrite", action="store_true", help="replace an existing folder")
@@ -53,6 +56,7 @@ def _survey(args: argparse.Namespace) -> int:
             height=args.height,
             fps=args.fps,
             video=not args.no_video,
+            video_crf=args.video_crf,
             save_depth=args.depth,
             workers=args.workers,
             texel_m=args.texel_mm * 1e-3,

@@ -108,6 +108,19 @@ def test_same_seed_same_bytes(tmp_path: Path, survey: Path) -> None:
     assert a["session_00/euroc/mav0/imu0/data.csv"] != b["session_00/euroc/mav0/imu0/data.csv"]
 
 
+def test_video_crf_sets_the_video_quality(tmp_path: Path, survey: Path) -> None:
+    """A lower CRF spends more bits on the same frames; the rest of the folder is unchanged."""
+    better = run(tiny(video_crf=12), tmp_path / "crf12")
+    a, b = digest(survey), digest(better)
+    videos = [name for name in a if name.endswith(".MP4")]
+    assert videos
+    for name in videos:
+        assert (better / name).stat().st_size > 1.5 * (survey / name).stat().st_size
+    assert {k: v for k, v in a.items() if k not in videos} == {
+        k: v for k, v in b.items() if k not in videos
+    }
+
+
 def test_refuses_to_overwrite(survey: Path) -> None:
     with pytest.raises(OutputExistsError):
         run(tiny(), survey)
@@ -123,6 +136,7 @@ def test_refuses_to_overwrite(survey: Path) -> None:
         ("timeshift_cam_imu_s", 2.0, "timeshift"),
         ("start_utc", "yesterday", "ISO 8601"),
         ("cam_from_imu", np.ones((4, 4)), "rigid"),
+        ("video_crf", 52, "video_crf"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, message: str) -> None:
