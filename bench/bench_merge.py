@@ -234,13 +234,15 @@ def make_fieldsim_survey(
     *,
     yaw_drift_only: bool = True,
     every_keyframe: bool = False,
+    jitter: tuple[float, float] = (0.15, 0.01),
 ) -> tuple[list[Path], list[Path], SurveyTruth]:
     """SLAM-like folders from the survey simulator (`sim`): its wreck, its two hull
     grids, its diver routes and renderer; SLAM errors added to the true camera poses.
 
     Keyframes at 1 Hz where a grid is within 3.5 m and at least half in view. SLAM error:
     a random-walk drift (0.02 deg and 3 mm per sqrt(s); the rotation about z only unless
-    `yaw_drift_only` is false), per-keyframe jitter (0.15 deg, 1 cm), a session tilt
+    `yaw_drift_only` is false), per-keyframe jitter (`jitter`: deg and m, 1 sigma per
+    axis; default 0.15 deg, 1 cm), a session tilt
     (0.05 deg) and `outliers` gross errors (3-12 deg, 0.15-0.6 m). `every_keyframe`:
     keyframes at 1 Hz along the whole dive, as a SLAM writes them (natural-feature
     merging needs the structure between the targets too).
@@ -309,7 +311,7 @@ def make_fieldsim_survey(
             slam_poses.append(apply_slam_error(invert_pose(w_from_s) @ world_from_cam[i], drift))
             if not seen[i]:
                 continue
-            error = drift @ random_pose_error(rng, 0.15, 0.01)
+            error = drift @ random_pose_error(rng, *jitter)
             outlier = bool(rng.uniform() < outliers)
             if outlier:
                 error = outlier_pose_error(rng, (3.0, 12.0), (0.15, 0.6))
@@ -556,6 +558,8 @@ def _render(
     if args.scene == "fieldsim":
         key += f"_d{args.duration:g}" + ("_tilt" if args.tilt_drift else "")
         key += "_all" if args.every_keyframe else ""
+        if (args.jitter_deg, args.jitter_cm) != (0.15, 1.0):
+            key += f"_j{args.jitter_deg:g}_{args.jitter_cm:g}"
     root = (Path(args.cache) if args.cache else tmp) / key
     done = root / "bench_truth.pkl"
     if done.is_file():
@@ -577,6 +581,7 @@ def _render(
             args.outliers,
             yaw_drift_only=not args.tilt_drift,
             every_keyframe=args.every_keyframe,
+            jitter=(args.jitter_deg, args.jitter_cm / 100.0),
         )
     with done.open("wb") as f:
         pickle.dump((folders, targets, truth), f)
@@ -706,6 +711,19 @@ def main() -> int:
         "--every-keyframe",
         action="store_true",
         help="fieldsim: keyframes at 1 Hz along the whole dive (not only near the targets)",
+    )
+    parser.add_argument(
+        "--jitter-deg",
+        type=float,
+        default=0.15,
+        help="fieldsim: each keyframe's own SLAM rotation error besides the drift (deg, 1 sigma "
+        "per axis)",
+    )
+    parser.add_argument(
+        "--jitter-cm",
+        type=float,
+        default=1.0,
+        help="fieldsim: and its translation error (cm, 1 sigma per axis)",
     )
     parser.add_argument(
         "--render-only", action="store_true", help="render (and cache) the seeds, then stop"
