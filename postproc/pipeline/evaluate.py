@@ -16,8 +16,9 @@ format), for whatever stages have finished:
 - sfm: the same on the refined keyframes (`sessions/<name>/keyframes_world.tum`).
 - dense: mesh.ply (or fused.ply) vertices moved into the truth frame with the SfM (or
   merge) alignment, then accuracy (share of points within d of the truth surface),
-  completeness (share of the filmed truth surface within d of a point) at d = 0.05,
-  0.10, 0.20 m, and the median distance.
+  completeness (share of the filmed truth surface within d of the reconstruction: of its
+  triangles for a mesh, of its points for a cloud) at d = 0.05, 0.10, 0.20 m, and the
+  median distance.
 
   "Filmed" (`CompletenessOptions`): truth-surface samples seen by at least 3 of the
   keyframes (those the SfM, else the merge, aligned), each placed at its true camera pose
@@ -51,6 +52,8 @@ log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 THRESHOLDS_M = (0.05, 0.10, 0.20)
+#: A point cloud's completeness is measured on at most this many of its points.
+COMPLETENESS_MAX_POINTS = 5_000_000
 
 
 @dataclass(kw_only=True)
@@ -322,14 +325,22 @@ def evaluate_mesh(
     from shared.formats.ply import read_ply
 
     options = options or CompletenessOptions()
-    recon = read_ply(recon_path).vertices
+    data = read_ply(recon_path)
     truth = read_ply(truth_mesh_path)
     if truth.faces is None or len(truth.faces) == 0:
         raise InputError(f"{truth_mesh_path}: no triangles (expected the truth mesh)")
     rng = np.random.default_rng(0)
-    if len(recon) > 200_000:  # the scores are fractions: a fixed sample is enough
-        recon = recon[rng.choice(len(recon), 200_000, replace=False)]
-    points = recon @ truth_from_recon[:3, :3].T + truth_from_recon[:3, 3]
+    everything = data.vertices @ truth_from_recon[:3, :3].T + truth_from_recon[:3, 3]
+    faces = data.faces if data.faces is not None and len(data.faces) else None
+    # Accuracy is a share of the points: a fixed sample is enough. Completeness is not:
+    # it needs the whole surface (a mesh's triangles), or a cloud's points, up to a cap
+    # that bounds the memory of the tree over a fused cloud of many millions.
+    points = everything
+    if len(points) > 200_000:
+        points = points[rng.choice(len(points), 200_000, replace=False)]
+    cover = everything
+    if faces is None and len(cover) > COMPLETENESS_MAX_POINTS:
+        cover = cover[rng.choice(len(cover), COMPLETENESS_MAX_POINTS, replace=False)]
     samples, _ = sample_surface(truth.vertices, truth.faces, options.sample_spacing_m, seed=0)
     lo, hi = points.min(axis=0) - 0.1, points.max(axis=0) + 0.1
     in_box = samples[np.all((samples >= lo) & (samples <= hi), axis=1)]
@@ -368,10 +379,14 @@ def evaluate_mesh(
     result["truth_samples"] = len(samples)
     result["bbox_samples"] = len(in_box)
     distances = distance_to_mesh(points, truth.vertices, truth.faces)
-    tree = cKDTree(points)
+    tree = cKDTree(cover) if faces is None else None
 
     def within(targets: FloatArray) -> FloatArray:
-        return tree.query(targets)[0] if len(targets) else np.zeros(0)
+        if not len(targets):
+            return np.zeros(0)
+        if tree is not None:
+            return np.asarray(tree.query(targets)[0], dtype=np.float64)
+        return distance_to_mesh(targets, cover, faces)
 
     to_box = within(in_box)
     to_seen = within(seen) if seen is not None else to_box

@@ -74,6 +74,26 @@ def test_completeness_of_the_filmed_half(tmp_path: Path) -> None:
         assert score["f1"] == pytest.approx(f1)
 
 
+def test_a_mesh_counts_its_triangles_not_only_its_vertices(tmp_path: Path) -> None:
+    """Two triangles over the x >= 0 half of the upper square: their four corners alone
+    would cover almost nothing at 5 cm, the surface covers half the filmed square."""
+    half = np.array([[0, -1, 0], [1, -1, 0], [1, 1, 0], [0, 1, 0]], float)
+    recon = write_ply(
+        tmp_path / "coarse.ply", PlyData(vertices=half, faces=np.array([[0, 1, 2], [0, 2, 3]]))
+    )
+    result = evaluate_mesh(
+        recon,
+        two_storeys(tmp_path),
+        np.eye(4),
+        camera=CAMERA,
+        world_from_cams=keyframes_above(),
+        options=CompletenessOptions(sample_spacing_m=0.02),
+    )
+    for score in result["scores"]:
+        d = score["threshold_m"]
+        assert score["completeness"] == pytest.approx((1 + d) / 2, abs=0.01)
+
+
 def test_out_of_range_and_without_cameras(tmp_path: Path) -> None:
     truth_path = two_storeys(tmp_path)
     recon = reconstruction(tmp_path, np.eye(4))
