@@ -384,9 +384,10 @@ def evaluate_mesh(
     def within(targets: FloatArray) -> FloatArray:
         if not len(targets):
             return np.zeros(0)
-        if tree is not None:
-            return np.asarray(tree.query(targets)[0], dtype=np.float64)
-        return distance_to_mesh(targets, cover, faces)
+        if faces is not None:
+            return distance_to_mesh(targets, cover, faces)
+        assert tree is not None
+        return np.asarray(tree.query(targets)[0], dtype=np.float64)
 
     to_box = within(in_box)
     to_seen = within(seen) if seen is not None else to_box
