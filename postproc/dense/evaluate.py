@@ -87,6 +87,46 @@ def sample_surface(
     return points, tri
 
 
+def distance_to_surface(
+    points: FloatArray,
+    vertices: FloatArray,
+    triangles: npt.NDArray[np.integer],
+    *,
+    nearest_vertices: int = 4,
+) -> FloatArray:
+    """Distance (N,) from each point to a fine mesh (a reconstruction's: many small
+    triangles sharing their vertices): exact point-to-triangle distance over the triangles
+    around the `nearest_vertices` nearest vertices (upper bound of the true distance,
+    exact wherever the nearest triangle touches one of them). `distance_to_mesh` suits a
+    coarse mesh and few points; here each vertex is in the search tree once."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    if len(points) == 0:
+        return np.zeros(0)
+    if len(t) == 0 or len(v) == 0:
+        return np.full(len(points), np.inf)
+    _, near = cKDTree(v).query(points, k=min(nearest_vertices, len(v)))
+    near = np.asarray(near).reshape(len(points), -1)
+    # The triangles around each vertex, grouped by vertex.
+    flat = t.ravel()
+    order = np.argsort(flat, kind="stable")
+    around = order // 3
+    counts = np.bincount(flat, minlength=len(v))
+    starts = np.concatenate(([0], np.cumsum(counts)))
+    best = np.full(len(points), np.inf)
+    for column in range(near.shape[1]):
+        vertex = near[:, column]
+        for j in range(int(counts[vertex].max(initial=0))):
+            has = np.flatnonzero(counts[vertex] > j)
+            tri = t[around[starts[vertex[has]] + j]]
+            d = point_triangle_distance(points[has], v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]])
+            best[has] = np.minimum(best[has], d)
+    return best
+
+
 def distance_to_mesh(
     points: FloatArray,
     vertices: FloatArray,

@@ -318,6 +318,7 @@ def evaluate_mesh(
     from postproc.dense.evaluate import (
         Scores,
         distance_to_mesh,
+        distance_to_surface,
         sample_surface,
         seen_counts,
         undistorted_canvas,
@@ -385,7 +386,7 @@ def evaluate_mesh(
         if not len(targets):
             return np.zeros(0)
         if faces is not None:
-            return distance_to_mesh(targets, cover, faces)
+            return distance_to_surface(targets, cover, faces)
         assert tree is not None
         return np.asarray(tree.query(targets)[0], dtype=np.float64)
 

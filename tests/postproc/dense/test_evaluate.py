@@ -7,6 +7,7 @@ import pytest
 
 from postproc.dense.evaluate import (
     distance_to_mesh,
+    distance_to_surface,
     evaluate,
     point_triangle_distance,
     sample_surface,
@@ -49,6 +50,31 @@ def test_distance_to_mesh_and_far_triangles() -> None:
     np.testing.assert_allclose(d, [0.03, 0.2, 1.0], atol=1e-9)
     assert distance_to_mesh(np.zeros((0, 3)), vertices, triangles).shape == (0,)
     assert np.isinf(distance_to_mesh(np.array([[50.0, 50, 50]]), *square_mesh()))[0]
+
+
+def test_distance_to_surface_of_a_fine_mesh() -> None:
+    """A wavy 1 m sheet of 2 cm triangles: the distance from points near it is that over
+    every triangle (checked against all of them), and the large square gives its plane."""
+    x, y = np.meshgrid(np.linspace(0, 1, 51), np.linspace(0, 1, 51))
+    z = 0.05 * np.sin(6 * x) * np.cos(4 * y)
+    vertices = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    i = np.arange(50)[:, None] * 51 + np.arange(50)[None]
+    quads = i.ravel()
+    triangles = np.concatenate([
+        np.column_stack([quads, quads + 1, quads + 52]),
+        np.column_stack([quads, quads + 52, quads + 51]),
+    ])  # fmt: skip
+    rng = np.random.default_rng(3)
+    points = np.column_stack(
+        [rng.uniform(0, 1, 300), rng.uniform(0, 1, 300), rng.normal(0, 0.04, 300)]
+    )
+    got = distance_to_surface(points, vertices, triangles)
+    a, b, c = (vertices[triangles[:, k]] for k in range(3))
+    every = [point_triangle_distance(np.tile(p, (len(a), 1)), a, b, c).min() for p in points]
+    np.testing.assert_allclose(got, every, atol=1e-12)
+    d = distance_to_surface(np.array([[1.0, 1.0, 0.03], [0.5, 1.5, -0.2]]), *square_mesh())
+    np.testing.assert_allclose(d, [0.03, 0.2], atol=1e-12)
+    assert distance_to_surface(np.zeros((0, 3)), vertices, triangles).shape == (0,)
 
 
 def test_sampling_density() -> None:
