@@ -96,6 +96,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -189,6 +190,8 @@ FEATURE_METHODS = (
     ),
 )
 NO_TARGETS = FEATURE_METHODS[0][0]
+#: Each fieldsim keyframe's own SLAM error besides the drift (deg, m; 1 sigma per axis).
+JITTER = (0.15, 0.01)
 #: The methods whose merge the SfM stage refines with `--sfm`: the paper's, the
 #: target-only row the feature rows compare with, and both feature rows.
 SFM_METHODS = ("paper (6 DoF, Euler)", "ours 6 DoF + tilt prior", *(n for n, _ in FEATURE_METHODS))
@@ -234,7 +237,7 @@ def make_fieldsim_survey(
     *,
     yaw_drift_only: bool = True,
     every_keyframe: bool = False,
-    jitter: tuple[float, float] = (0.15, 0.01),
+    jitter: tuple[float, float] = JITTER,
 ) -> tuple[list[Path], list[Path], SurveyTruth]:
     """SLAM-like folders from the survey simulator (`sim`): its wreck, its two hull
     grids, its diver routes and renderer; SLAM errors added to the true camera poses.
@@ -242,7 +245,7 @@ def make_fieldsim_survey(
     Keyframes at 1 Hz where a grid is within 3.5 m and at least half in view. SLAM error:
     a random-walk drift (0.02 deg and 3 mm per sqrt(s); the rotation about z only unless
     `yaw_drift_only` is false), per-keyframe jitter (`jitter`: deg and m, 1 sigma per
-    axis; default 0.15 deg, 1 cm), a session tilt
+    axis; default `JITTER`), a session tilt
     (0.05 deg) and `outliers` gross errors (3-12 deg, 0.15-0.6 m). `every_keyframe`:
     keyframes at 1 Hz along the whole dive, as a SLAM writes them (natural-feature
     merging needs the structure between the targets too).
@@ -558,7 +561,7 @@ def _render(
     if args.scene == "fieldsim":
         key += f"_d{args.duration:g}" + ("_tilt" if args.tilt_drift else "")
         key += "_all" if args.every_keyframe else ""
-        if (args.jitter_deg, args.jitter_cm) != (0.15, 1.0):
+        if (args.jitter_deg, args.jitter_cm / 100.0) != JITTER:
             key += f"_j{args.jitter_deg:g}_{args.jitter_cm:g}"
     root = (Path(args.cache) if args.cache else tmp) / key
     done = root / "bench_truth.pkl"
@@ -594,18 +597,19 @@ def _sfm_errors(
     truth: SurveyTruth,
     folders: list[Path],
     merge: Path,
+    document: dict[str, Any],
     maps: dict[tuple[str, str], list[tuple[float, float]]],
     places: dict[tuple[str, str], list[tuple[float, float]]],
     times: list[float],
 ) -> str:
-    """Run the SfM stage on `merge`; add the overlay errors before and after it."""
+    """Run the SfM stage on `merge` (its transforms.json: `document`); add the overlay
+    errors before and after it."""
     from postproc.sfm.stage import SfmOptions
     from postproc.sfm.stage import run as run_sfm
     from shared.folders import MergeFolder, SfmFolder
 
     sessions = [Path(f).name for f in folders]
-    placed = MergeFolder(merge).read_transforms()
-    if not all(placed["sessions"][s]["placed"] for s in sessions):
+    if not all(document["sessions"][s]["placed"] for s in sessions):
         return " (not all placed: no SfM)"
     out = merge.with_name(merge.name + "_sfm")
     start = time.perf_counter()
@@ -715,14 +719,14 @@ def main() -> int:
     parser.add_argument(
         "--jitter-deg",
         type=float,
-        default=0.15,
+        default=JITTER[0],
         help="fieldsim: each keyframe's own SLAM rotation error besides the drift (deg, 1 sigma "
         "per axis)",
     )
     parser.add_argument(
         "--jitter-cm",
         type=float,
-        default=1.0,
+        default=100.0 * JITTER[1],
         help="fieldsim: and its translation error (cm, 1 sigma per axis)",
     )
     parser.add_argument(
@@ -851,7 +855,15 @@ def main() -> int:
                 line += f" {name}: {rot_e:.3f} deg {100 * trans_e:.1f} cm"
                 if name in sfm_names:
                     line += _sfm_errors(
-                        name, root, truth, folders, out, maps, places, sfm_times[name]
+                        name,
+                        root,
+                        truth,
+                        folders,
+                        out,
+                        document,
+                        maps,
+                        places,
+                        sfm_times[name],
                     )
                 if at_targets:
                     here = np.array(local[name][-len(references[args.sessions]) :])
