@@ -34,7 +34,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     survey.add_argument("--no-video", action="store_true", help="skip the GoPro-like MP4")
     survey.add_argument(
-        "--video-crf", type=int, default=28, help="x264 quality of the MP4 (lower: better)"
+        "--video-crf",
+        type=int,
+        help="x264 quality of the MP4 (lower: better; default SurveyOptions.video_crf)",
     )
     survey.add_argument(
         "--depth", action="store_true", help="also write depth maps (16-bit PNG, mm)"
@@ -56,11 +58,11 @@ def _survey(args: argparse.Namespace) -> int:
             height=args.height,
             fps=args.fps,
             video=not args.no_video,
-            video_crf=args.video_crf,
             save_depth=args.depth,
             workers=args.workers,
             texel_m=args.texel_mm * 1e-3,
             seafloor_texel_m=max(args.texel_mm * 3e-3, 0.005),
+            **({} if args.video_crf is None else {"video_crf": args.video_crf}),
         )
     except ValueError as error:
         raise InputError(f"sim survey: {error}") from error
