@@ -53,23 +53,28 @@ class ViewSelectionOptions:
     roll about the axis does not count): dense work then grows with the surveyed
     surface, not with the time spent over it. Every keyframe remains a stereo source.
 
-    The defaults space references about half a footprint apart (0.15 of the scene depth,
-    10 degrees), so a surface lies in two or more reference depth maps: the mesh keeps
-    only points that two maps agree on (`mesh_min_images`). At 0.3 / 20 degrees most
-    surface was in one map only, and a simulated 10-minute dive (1227 keyframes) got 39
-    references and a mesh covering 16 % of the filmed surface at 5 cm; at 0.15 / 10
-    degrees, 130 references and 55 %, for 1.7x the dense time.
+    The defaults space references about a third of a footprint apart (0.10 of the scene
+    depth, 7 degrees), so a surface lies in two or more reference depth maps: the mesh
+    keeps only points that two maps agree on (`mesh_min_images`). At 0.3 / 20 degrees
+    most surface was in one map only, and a simulated 10-minute dive (1227 keyframes)
+    got 39 references and a mesh covering 16 % of the filmed surface at 5 cm; at 0.15 /
+    10 degrees, 130 references and 55 %, for 1.7x the dense time. On bench_pipeline's
+    10-minute dive at x264 CRF 18 (1218 keyframes, one-off script on the run's SfM),
+    0.15 / 10 degrees gave 134 references and a mesh of 96.5 / 64.8 % (accuracy /
+    completeness at 5 cm) in 203 s; 0.10 / 7 degrees 301 references and 92.3 / 74.6 %
+    in 424 s, 96.3 / 69.6 % with `DenseOptions.mesh_stray_neighbours` 10 (98.3 / 59.3 %
+    with 134 references).
 
     enabled: False makes every keyframe a reference.
     min_baseline_rel: distance to the nearest reference, as a fraction of the scene
-        depth, beyond which a keyframe sees enough new surface (0.15 at 2.5 m: 0.38 m).
+        depth, beyond which a keyframe sees enough new surface (0.10 at 2.5 m: 0.25 m).
     min_rotation_deg: turn beyond which a keyframe sees another part of the scene or the
         same surface from another side.
     """
 
     enabled: bool = True
-    min_baseline_rel: float = 0.15
-    min_rotation_deg: float = 10.0
+    min_baseline_rel: float = 0.10
+    min_rotation_deg: float = 7.0
 
 
 @dataclass(kw_only=True)
@@ -244,6 +249,14 @@ class DenseOptions:
         from 97.2 / 58.3 % to 82.1 / 65.9 % (6 m) or 95.1 / 58.5 % (2 m); one-off script on
         the run's folder. So use it on uncompressed or lightly compressed images only, with
         the range at about the water's visibility.
+    mesh_stray_neighbours / mesh_stray_radius_m: after those rules, a point with fewer
+        than this many other mesh points within the radius (m) is a stray and is left
+        out, however many images saw it (0: off). Poisson grows a blob of surface around
+        each lone point, and the trim keeps it (its vertices lie near that point). On
+        bench_pipeline's 10-minute dive (x264 CRF 18, SfM poses, 301 depth maps, one-off
+        script on the run's folder), the mesh at 5 cm went from 92.3 / 74.6 % to 94.7 /
+        72.8 % with 5 neighbours within 5 cm, 96.3 / 69.6 % with 10 (0.7 % of the points
+        left out), 96.8 / 66.5 % with 15 and 97.1 / 63.6 % with 20.
     """
 
     max_image_size_px: int = 960
@@ -264,3 +277,5 @@ class DenseOptions:
     mesh_single_image_min_pairs: int = 4
     mesh_single_image_near_min_pairs: int = 0
     mesh_single_image_near_range_m: float = 6.0
+    mesh_stray_neighbours: int = 10
+    mesh_stray_radius_m: float = 0.05

@@ -604,6 +604,8 @@ def _build(
                 min_pairs=options.mesh_single_image_min_pairs,
                 near_min_pairs=options.mesh_single_image_near_min_pairs,
                 near_range_m=options.mesh_single_image_near_range_m,
+                stray_neighbours=options.mesh_stray_neighbours,
+                stray_radius_m=options.mesh_stray_radius_m,
                 workspace=workspace, views=views,
             )  # fmt: skip
         if not mesh_ply.exists():
@@ -643,6 +645,8 @@ def supported_points(
     min_pairs: int = 0,
     near_min_pairs: int = 0,
     near_range_m: float = 0.0,
+    stray_neighbours: int = 0,
+    stray_radius_m: float = 0.05,
     workspace: DenseWorkspace | None = None,
     views: list[PinholeView] | None = None,
 ) -> Path:
@@ -658,7 +662,12 @@ def supported_points(
       images matched it. A map without support (PatchMatch) keeps nothing by this rule;
     - `near_min_pairs` > 0: the same with `near_min_pairs` pairs for a point no farther
       than `near_range_m` (m) from the cameras of those maps (through water, far surfaces
-      lose contrast and a few pairs agree on a wrong depth by chance)."""
+      lose contrast and a few pairs agree on a wrong depth by chance).
+
+    Then, `stray_neighbours` > 0: of the points kept so far, those with fewer than
+    `stray_neighbours` others (also kept) within `stray_radius_m` (m) are left out, seen
+    by many images or not: a surface is a patch of points, and Poisson grows a blob of
+    surface around each lone point."""
     from postproc.dense.colmap_io import read_fusion_visibility
     from shared.formats.ply import PlyData, read_ply, write_ply
 
@@ -690,12 +699,41 @@ def supported_points(
     keep |= extra
     if not keep.any():
         raise StageError(f"{fused_ply}: no point was fused from {min_images} or more images")
+    if stray_neighbours > 0:
+        keep[np.flatnonzero(keep)[lone_points(cloud.vertices[keep], stray_neighbours,
+                                              stray_radius_m)]] = False  # fmt: skip
+        if not keep.any():
+            raise StageError(
+                f"{fused_ply}: every point has fewer than {stray_neighbours} others within "
+                f"{stray_radius_m:g} m"
+            )
     kept = PlyData(
         vertices=cloud.vertices[keep],
         normals=None if cloud.normals is None else cloud.normals[keep],
         colors=None if cloud.colors is None else cloud.colors[keep],
     )
     return write_ply(out_ply, kept, overwrite=True)
+
+
+def lone_points(
+    points_m: npt.NDArray[np.float64], neighbours: int, radius_m: float
+) -> npt.NDArray[np.bool_]:
+    """True (N,) for the points with fewer than `neighbours` other points within
+    `radius_m` (m). The search stops at `neighbours` + 1, so a dense cloud costs no more
+    than a sparse one."""
+    from scipy.spatial import cKDTree
+
+    if len(points_m) == 0:
+        return np.zeros(0, bool)
+    k = min(neighbours + 1, len(points_m))
+    distances, _ = cKDTree(points_m).query(
+        points_m, k=[k], distance_upper_bound=radius_m, workers=-1
+    )
+    # The k-th nearest (the point itself first) missing: fewer than k - 1 others.
+    lone: npt.NDArray[np.bool_] = ~np.isfinite(distances[:, 0])
+    if k < neighbours + 1:  # fewer points in all than asked for
+        lone[:] = True
+    return lone
 
 
 class PairSupport(NamedTuple):

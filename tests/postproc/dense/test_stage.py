@@ -24,6 +24,7 @@ from postproc.dense.colmap_io import (
 from postproc.dense.evaluate import distance_to_mesh
 from postproc.dense.fusion import FusionOptions, fuse
 from postproc.dense.meshing import MeshingOptions
+from postproc.dense.options import ViewSelectionOptions
 from postproc.dense.stage import (
     DenseOptions,
     choose_backend,
@@ -50,11 +51,17 @@ def _triangles(mesh: TruthMesh) -> npt.NDArray[np.int64]:
 
 
 def quick_options(**kwargs: object) -> DenseOptions:
-    """Single-threaded fusion and meshing (the test machine is shared), octree depth <= 8."""
+    """Single-threaded fusion and meshing (the test machine is shared), octree depth <= 8,
+    and the reference spacing these 7 views were laid out for (views 0, 2, 4 and 6 get a
+    depth map; the default since stop 41 spaces references closer)."""
+    options: dict[str, object] = {
+        "view_selection": ViewSelectionOptions(min_baseline_rel=0.15, min_rotation_deg=10.0),
+        **kwargs,
+    }
     return DenseOptions(
         fusion=FusionOptions(num_threads=1),
         meshing=MeshingOptions(num_threads=1, max_depth=8),
-        **kwargs,  # type: ignore[arg-type]
+        **options,  # type: ignore[arg-type]
     )
 
 
@@ -446,6 +453,44 @@ def test_mesh_input_keeps_dense_patches_of_one_depth_map(tmp_path: Path) -> None
     )
     # Asking for more neighbours than the corners have drops them.
     assert len(kept(min_neighbours=4, radius_m=0.015)) == len(patch) - 4 + 1
+
+
+def test_mesh_input_leaves_out_lone_points_however_many_images_saw_them(tmp_path: Path) -> None:
+    from postproc.dense.stage import lone_points, supported_points
+    from shared.formats.ply import PlyData, write_ply
+
+    # A 1 cm grid seen by two images, two strays seen by three, one single-image point.
+    u, v = np.meshgrid(np.arange(10) * 0.01, np.arange(10) * 0.01)
+    patch = np.column_stack((u.ravel(), v.ravel(), np.full(u.size, 2.0)))
+    strays = np.array([[1.0, 1.0, 2.0], [1.02, 1.0, 2.0]])  # each other's only neighbour
+    single = np.array([[0.05, 0.05, 2.01]])
+    points = np.concatenate((patch, strays, single))
+    write_ply(tmp_path / "fused.ply", PlyData(vertices=points))
+    seen_by = [[0, 1]] * len(patch) + [[0, 1, 2]] * len(strays) + [[0]]
+    values = [v for images in seen_by for v in (len(images), *images)]
+    vis = tmp_path / "fused.ply.vis"
+    vis.write_bytes(np.uint64(len(points)).tobytes() + np.array(values, "<u4").tobytes())
+
+    def kept(**kwargs: Any) -> npt.NDArray[np.float64]:
+        out = supported_points(
+            tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2, **kwargs
+        )
+        return read_ply(out).vertices
+
+    np.testing.assert_allclose(kept(), np.concatenate((patch, strays)))
+    # Grid points have 3 or more others within 1.5 cm (the single-image point, left out
+    # first, does not count for them); each stray has one.
+    np.testing.assert_allclose(kept(stray_neighbours=3, stray_radius_m=0.015), patch)
+    np.testing.assert_allclose(
+        kept(stray_neighbours=1, stray_radius_m=0.025), np.concatenate((patch, strays))
+    )
+    with pytest.raises(StageError, match="fewer than 200 others"):
+        kept(stray_neighbours=200, stray_radius_m=1.0)
+    # The count stops at the asked-for neighbours, and fewer points than that are all lone.
+    assert lone_points(patch, 3, 0.015).sum() == 0
+    assert lone_points(patch, 4, 0.015).sum() == 4  # the corners
+    assert lone_points(patch[:3], 5, 1.0).all()
+    assert len(lone_points(np.zeros((0, 3)), 5, 1.0)) == 0
 
 
 def test_mesh_input_keeps_points_of_one_map_that_pairs_support(tmp_path: Path) -> None:
