@@ -255,8 +255,8 @@ class DenseOptions:
         each lone point, and the trim keeps it (its vertices lie near that point). On
         bench_pipeline's 10-minute dive (x264 CRF 18, SfM poses, 301 depth maps, one-off
         script on the run's folder), the mesh at 5 cm went from 92.3 / 74.6 % to 94.7 /
-        72.8 % with 5 neighbours within 5 cm, 96.3 / 69.6 % with 10 (0.7 % of the points
-        left out), 96.8 / 66.5 % with 15 and 97.1 / 63.6 % with 20.
+        72.8 % with 5 neighbours within 5 cm, 95.7 / 71.0 % with 8, 96.3 / 69.6 % with 10
+        (0.7 % of the points left out), 96.8 / 66.5 % with 15 and 97.1 / 63.6 % with 20.
     """
 
     max_image_size_px: int = 960
