@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
@@ -423,19 +424,19 @@ def test_mesh_input_keeps_points_seen_twice(tmp_path: Path) -> None:
         supported_points(tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2)
 
 
-def test_mesh_input_keeps_dense_patches_of_one_depth_map(tmp_path: Path) -> None:
+def grid_and_kept(
+    tmp_path: Path, others: npt.NDArray[np.float64], seen_by: list[list[int]]
+) -> tuple[npt.NDArray[np.float64], Callable[..., npt.NDArray[np.float64]]]:
+    """A 1 cm grid of 100 points at z = 2 m followed by `others`, written as fused.ply with
+    its .vis (`seen_by`: the images of each point); returns the grid and `kept(**rules)`,
+    the points `supported_points` keeps (min_images 2) under those rules."""
     from postproc.dense.stage import supported_points
     from shared.formats.ply import PlyData, write_ply
 
-    # A 1 cm grid of points seen by one image, two strays seen by one image, and one
-    # point seen by two images.
     u, v = np.meshgrid(np.arange(10) * 0.01, np.arange(10) * 0.01)
     patch = np.column_stack((u.ravel(), v.ravel(), np.full(u.size, 2.0)))
-    strays = np.array([[1.0, 1.0, 2.0], [-1.0, 0.5, 3.0]])
-    twice = np.array([[5.0, 5.0, 5.0]])
-    points = np.concatenate((patch, strays, twice))
+    points = np.concatenate((patch, others))
     write_ply(tmp_path / "fused.ply", PlyData(vertices=points))
-    seen_by = [[0]] * (len(patch) + len(strays)) + [[0, 1]]
     values = [v for images in seen_by for v in (len(images), *images)]
     vis = tmp_path / "fused.ply.vis"
     vis.write_bytes(np.uint64(len(points)).tobytes() + np.array(values, "<u4").tobytes())
@@ -445,6 +446,16 @@ def test_mesh_input_keeps_dense_patches_of_one_depth_map(tmp_path: Path) -> None
             tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2, **kwargs
         )
         return read_ply(out).vertices
+
+    return patch, kept
+
+
+def test_mesh_input_keeps_dense_patches_of_one_depth_map(tmp_path: Path) -> None:
+    # A 1 cm grid of points seen by one image, two strays seen by one image, and one
+    # point seen by two images.
+    strays = np.array([[1.0, 1.0, 2.0], [-1.0, 0.5, 3.0]])
+    twice = np.array([[5.0, 5.0, 5.0]])
+    patch, kept = grid_and_kept(tmp_path, np.concatenate((strays, twice)), [[0]] * 102 + [[0, 1]])
 
     np.testing.assert_allclose(kept(), twice)  # the rule off: only the point seen twice
     # Every grid point has at least 3 others within 1.5 cm (corners: 3), the strays none.
@@ -456,26 +467,14 @@ def test_mesh_input_keeps_dense_patches_of_one_depth_map(tmp_path: Path) -> None
 
 
 def test_mesh_input_leaves_out_lone_points_however_many_images_saw_them(tmp_path: Path) -> None:
-    from postproc.dense.stage import lone_points, supported_points
-    from shared.formats.ply import PlyData, write_ply
+    from postproc.dense.stage import lone_points
 
     # A 1 cm grid seen by two images, two strays seen by three, one single-image point.
-    u, v = np.meshgrid(np.arange(10) * 0.01, np.arange(10) * 0.01)
-    patch = np.column_stack((u.ravel(), v.ravel(), np.full(u.size, 2.0)))
     strays = np.array([[1.0, 1.0, 2.0], [1.02, 1.0, 2.0]])  # each other's only neighbour
     single = np.array([[0.05, 0.05, 2.01]])
-    points = np.concatenate((patch, strays, single))
-    write_ply(tmp_path / "fused.ply", PlyData(vertices=points))
-    seen_by = [[0, 1]] * len(patch) + [[0, 1, 2]] * len(strays) + [[0]]
-    values = [v for images in seen_by for v in (len(images), *images)]
-    vis = tmp_path / "fused.ply.vis"
-    vis.write_bytes(np.uint64(len(points)).tobytes() + np.array(values, "<u4").tobytes())
-
-    def kept(**kwargs: Any) -> npt.NDArray[np.float64]:
-        out = supported_points(
-            tmp_path / "fused.ply", vis, tmp_path / "s.ply", min_images=2, **kwargs
-        )
-        return read_ply(out).vertices
+    patch, kept = grid_and_kept(
+        tmp_path, np.concatenate((strays, single)), [[0, 1]] * 100 + [[0, 1, 2]] * 2 + [[0]]
+    )
 
     np.testing.assert_allclose(kept(), np.concatenate((patch, strays)))
     # Grid points have 3 or more others within 1.5 cm (the single-image point, left out
