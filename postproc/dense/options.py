@@ -257,6 +257,10 @@ class DenseOptions:
         script on the run's folder), the mesh at 5 cm went from 92.3 / 74.6 % to 94.7 /
         72.8 % with 5 neighbours within 5 cm, 95.7 / 71.0 % with 8, 96.3 / 69.6 % with 10
         (0.7 % of the points left out), 96.8 / 66.5 % with 15 and 97.1 / 63.6 % with 20.
+    mesh_stray_radius_spacings: the stray rule's radius is at least this many median
+        point spacings: a coarse cloud (small images, a distant survey) has fewer points
+        in 5 cm, all of them surface (that dive's spacing, 3 mm, leaves 5 cm in force;
+        a test's 256x192 depth maps, f 150 px, from 3 m, 2 cm a pixel, lost a hatch at 5 cm).
     """
 
     max_image_size_px: int = 960
@@ -279,3 +283,4 @@ class DenseOptions:
     mesh_single_image_near_range_m: float = 6.0
     mesh_stray_neighbours: int = 10
     mesh_stray_radius_m: float = 0.05
+    mesh_stray_radius_spacings: float = 5.0

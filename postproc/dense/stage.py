@@ -606,6 +606,7 @@ def _build(
                 near_range_m=options.mesh_single_image_near_range_m,
                 stray_neighbours=options.mesh_stray_neighbours,
                 stray_radius_m=options.mesh_stray_radius_m,
+                stray_radius_spacings=options.mesh_stray_radius_spacings,
                 workspace=workspace, views=views,
             )  # fmt: skip
         if not mesh_ply.exists():
@@ -647,6 +648,7 @@ def supported_points(
     near_range_m: float = 0.0,
     stray_neighbours: int = 0,
     stray_radius_m: float = 0.05,
+    stray_radius_spacings: float = 0.0,
     workspace: DenseWorkspace | None = None,
     views: list[PinholeView] | None = None,
 ) -> Path:
@@ -665,9 +667,10 @@ def supported_points(
       lose contrast and a few pairs agree on a wrong depth by chance).
 
     Then, `stray_neighbours` > 0: of the points kept so far, those with fewer than
-    `stray_neighbours` others (also kept) within `stray_radius_m` (m) are left out, seen
-    by many images or not: a surface is a patch of points, and Poisson grows a blob of
-    surface around each lone point."""
+    `stray_neighbours` others (also kept) within `stray_radius_m` (m), or within
+    `stray_radius_spacings` median point spacings where that is larger (`lone_points`),
+    are left out, seen by many images or not: a surface is a patch of points, and
+    Poisson grows a blob of surface around each lone point."""
     from postproc.dense.colmap_io import read_fusion_visibility
     from shared.formats.ply import PlyData, read_ply, write_ply
 
@@ -700,12 +703,15 @@ def supported_points(
     if not keep.any():
         raise StageError(f"{fused_ply}: no point was fused from {min_images} or more images")
     if stray_neighbours > 0:
-        keep[np.flatnonzero(keep)[lone_points(cloud.vertices[keep], stray_neighbours,
-                                              stray_radius_m)]] = False  # fmt: skip
+        lone = lone_points(
+            cloud.vertices[keep], stray_neighbours, stray_radius_m,
+            radius_spacings=stray_radius_spacings,
+        )  # fmt: skip
+        keep[np.flatnonzero(keep)[lone]] = False
         if not keep.any():
             raise StageError(
                 f"{fused_ply}: every point has fewer than {stray_neighbours} others within "
-                f"{stray_radius_m:g} m"
+                f"{stray_radius_m:g} m or {stray_radius_spacings:g} point spacings"
             )
     kept = PlyData(
         vertices=cloud.vertices[keep],
@@ -716,19 +722,30 @@ def supported_points(
 
 
 def lone_points(
-    points_m: npt.NDArray[np.float64], neighbours: int, radius_m: float
+    points_m: npt.NDArray[np.float64],
+    neighbours: int,
+    radius_m: float,
+    *,
+    radius_spacings: float = 0.0,
 ) -> npt.NDArray[np.bool_]:
     """True (N,) for the points with fewer than `neighbours` other points within
-    `radius_m` (m). The search stops at `neighbours` + 1, so a dense cloud costs no more
-    than a sparse one."""
+    `radius_m` (m), or within `radius_spacings` times the points' median spacing (the
+    distance to the nearest other point, over a sample) where that is larger: a coarse
+    cloud has fewer points in the same radius. The search stops at `neighbours` + 1, so
+    a dense cloud costs no more than a sparse one."""
     from scipy.spatial import cKDTree
 
     if len(points_m) == 0:
         return np.zeros(0, bool)
     k = min(neighbours + 1, len(points_m))
-    distances, _ = cKDTree(points_m).query(
-        points_m, k=[k], distance_upper_bound=radius_m, workers=-1
-    )
+    tree = cKDTree(points_m)
+    if radius_spacings > 0 and len(points_m) > 1:
+        sample = np.random.default_rng(0).choice(
+            len(points_m), min(len(points_m), 20_000), replace=False
+        )
+        spacing = float(np.median(tree.query(points_m[sample], k=[2])[0]))
+        radius_m = max(radius_m, radius_spacings * spacing)
+    distances, _ = tree.query(points_m, k=[k], distance_upper_bound=radius_m, workers=-1)
     # The k-th nearest (the point itself first) missing: fewer than k - 1 others.
     lone: npt.NDArray[np.bool_] = ~np.isfinite(distances[:, 0])
     if k < neighbours + 1:  # fewer points in all than asked for

@@ -490,6 +490,9 @@ def test_mesh_input_leaves_out_lone_points_however_many_images_saw_them(tmp_path
     assert lone_points(patch, 4, 0.015).sum() == 4  # the corners
     assert lone_points(patch[:3], 5, 1.0).all()
     assert len(lone_points(np.zeros((0, 3)), 5, 1.0)) == 0
+    # A coarse grid (3 cm) has no neighbour within 1.5 cm; 2 spacings (6 cm) find them.
+    assert lone_points(3.0 * patch, 3, 0.015).all()
+    assert not lone_points(3.0 * patch, 3, 0.015, radius_spacings=2.0).any()
 
 
 def test_mesh_input_keeps_points_of_one_map_that_pairs_support(tmp_path: Path) -> None:
