@@ -13,6 +13,7 @@ import math
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -24,18 +25,48 @@ from shared.formats.ply import PlyData, read_ply, write_ply
 FloatArray = npt.NDArray[np.float64]
 
 
-def point_spacing_m(points_m: npt.ArrayLike, *, sample: int = 20000, seed: int = 0) -> float:
-    """Median distance from a point to its nearest neighbour (a random sample of points)."""
+def point_spacing_m(
+    points_m: npt.ArrayLike, *, sample: int = 20000, seed: int = 0, tree: Any = None
+) -> float:
+    """Median distance from a point to its nearest neighbour (a random sample of points);
+    tree: a `cKDTree` of these points already built (None: build one)."""
     from scipy.spatial import cKDTree
 
     points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     if len(points) < 2:
         raise ValueError("need at least two points to measure their spacing")
-    tree = cKDTree(points)
+    tree = tree if tree is not None else cKDTree(points)
     rng = np.random.default_rng(seed)
     idx = rng.choice(len(points), size=min(sample, len(points)), replace=False)
     dist, _ = tree.query(points[idx], k=2)
     return float(np.median(dist[:, 1]))
+
+
+def lone_points(
+    points_m: FloatArray,
+    neighbours: int,
+    radius_m: float,
+    *,
+    radius_spacings: float = 0.0,
+) -> npt.NDArray[np.bool_]:
+    """True (N,) for the points with fewer than `neighbours` other points within
+    `radius_m` (m), or within `radius_spacings` times their `point_spacing_m` where that
+    is larger: a coarse cloud has fewer points in the same radius. The search stops at
+    `neighbours` + 1, so a dense cloud costs no more than a sparse one."""
+    from scipy.spatial import cKDTree
+
+    if len(points_m) == 0:
+        return np.zeros(0, bool)
+    k = min(neighbours + 1, len(points_m))
+    tree = cKDTree(points_m)
+    if radius_spacings > 0 and len(points_m) > 1:
+        radius_m = max(radius_m, radius_spacings * point_spacing_m(points_m, tree=tree))
+    distances, _ = tree.query(points_m, k=[k], distance_upper_bound=radius_m, workers=-1)
+    # The k-th nearest (the point itself first) missing: fewer than k - 1 others.
+    lone: npt.NDArray[np.bool_] = ~np.isfinite(distances[:, 0])
+    if k < neighbours + 1:  # fewer points in all than asked for
+        lone[:] = True
+    return lone
 
 
 def scene_extent_m(points_m: npt.ArrayLike) -> float:

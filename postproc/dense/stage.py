@@ -672,6 +672,7 @@ def supported_points(
     are left out, seen by many images or not: a surface is a patch of points, and
     Poisson grows a blob of surface around each lone point."""
     from postproc.dense.colmap_io import read_fusion_visibility
+    from postproc.dense.meshing import lone_points
     from shared.formats.ply import PlyData, read_ply, write_ply
 
     cloud = read_ply(fused_ply)
@@ -719,38 +720,6 @@ def supported_points(
         colors=None if cloud.colors is None else cloud.colors[keep],
     )
     return write_ply(out_ply, kept, overwrite=True)
-
-
-def lone_points(
-    points_m: npt.NDArray[np.float64],
-    neighbours: int,
-    radius_m: float,
-    *,
-    radius_spacings: float = 0.0,
-) -> npt.NDArray[np.bool_]:
-    """True (N,) for the points with fewer than `neighbours` other points within
-    `radius_m` (m), or within `radius_spacings` times the points' median spacing (the
-    distance to the nearest other point, over a sample) where that is larger: a coarse
-    cloud has fewer points in the same radius. The search stops at `neighbours` + 1, so
-    a dense cloud costs no more than a sparse one."""
-    from scipy.spatial import cKDTree
-
-    if len(points_m) == 0:
-        return np.zeros(0, bool)
-    k = min(neighbours + 1, len(points_m))
-    tree = cKDTree(points_m)
-    if radius_spacings > 0 and len(points_m) > 1:
-        sample = np.random.default_rng(0).choice(
-            len(points_m), min(len(points_m), 20_000), replace=False
-        )
-        spacing = float(np.median(tree.query(points_m[sample], k=[2])[0]))
-        radius_m = max(radius_m, radius_spacings * spacing)
-    distances, _ = tree.query(points_m, k=[k], distance_upper_bound=radius_m, workers=-1)
-    # The k-th nearest (the point itself first) missing: fewer than k - 1 others.
-    lone: npt.NDArray[np.bool_] = ~np.isfinite(distances[:, 0])
-    if k < neighbours + 1:  # fewer points in all than asked for
-        lone[:] = True
-    return lone
 
 
 class PairSupport(NamedTuple):

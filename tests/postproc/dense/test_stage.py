@@ -467,7 +467,7 @@ def test_mesh_input_keeps_dense_patches_of_one_depth_map(tmp_path: Path) -> None
 
 
 def test_mesh_input_leaves_out_lone_points_however_many_images_saw_them(tmp_path: Path) -> None:
-    from postproc.dense.stage import lone_points
+    from postproc.dense.meshing import lone_points
 
     # A 1 cm grid seen by two images, two strays seen by three, one single-image point.
     strays = np.array([[1.0, 1.0, 2.0], [1.02, 1.0, 2.0]])  # each other's only neighbour
