@@ -36,7 +36,6 @@ from __future__ import annotations
 import functools
 import logging
 import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -456,35 +455,25 @@ def undistort(
 
 
 def undistort_missing(
-    options: DenseOptions,
     model_dir: Path,
     image_dir: Path,
     workspace: DenseWorkspace,
-    names: list[str],
+    views: list[PinholeView],
 ) -> int:
-    """Undistort those of `names` not yet in the workspace's images (COLMAP's undistorter
-    into a temporary folder beside it, each image then renamed into place); returns how
-    many were missing."""
-    import pycolmap
+    """Undistort those of `views` whose image is not yet in the workspace, into the
+    PINHOLE camera COLMAP chose for it (`postproc.dense.undistort`: one pixel map per
+    camera, each image written atomically); returns how many were missing."""
+    from postproc.dense.undistort import PinholeTarget, undistort_images
+    from shared.progress import progress_bar
 
-    missing = [n for n in names if not (workspace.images_dir / n).is_file()]
+    missing = [v for v in views if not (workspace.images_dir / v.name).is_file()]
     if not missing:
         return 0
-    with tempfile.TemporaryDirectory(prefix=".undistort.", dir=workspace.root.parent) as tmp:
-        pycolmap.undistort_images(
-            output_path=tmp,
-            input_path=str(model_dir),
-            image_path=str(image_dir),
-            image_names=missing,
-            output_type="COLMAP",
-            undistort_options=pycolmap.UndistortCameraOptions(
-                max_image_size=options.max_image_size_px
-            ),
+    targets = {v.name: PinholeTarget.of(v.K, v.width, v.height) for v in missing}
+    with progress_bar(total=len(targets), desc="undistort", unit="image") as bar:
+        undistort_images(
+            model_dir, image_dir, workspace.images_dir, targets, on_done=lambda: bar.update(1)
         )
-        for name in missing:
-            target = workspace.images_dir / name
-            target.parent.mkdir(parents=True, exist_ok=True)
-            (Path(tmp) / "images" / name).replace(target)
     return len(missing)
 
 
@@ -561,7 +550,7 @@ def _build(
     references = reference_views(options, views, backend_name)
     report["reference_images"] = len(references)
     needed = backend.images_needed(options, views, references)
-    undistort_missing(options, model_dir, image_dir, workspace, [views[k].name for k in needed])
+    undistort_missing(model_dir, image_dir, workspace, [views[k] for k in needed])
     report["undistorted_images"] = len(needed)
     timings["undistort_s"] = time.perf_counter() - start
 

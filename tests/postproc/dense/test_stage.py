@@ -138,22 +138,25 @@ def test_only_the_images_the_stereo_reads_are_undistorted(
     assert on_disk == read and len(read) < len(sfm.names)
     report = json.loads((tmp_path / "few" / "dense.json").read_text())
     assert report["undistorted_images"] == len(read)
-    # The same pixels as COLMAP's undistortion of every image.
+    # The pixels of COLMAP's undistortion of every image, to its rounding.
     undistort(options, sfm.folder / "sparse", sfm.folder / "images", tmp_path / "all")
     for name in read:
         mine = cv2.imread(str(ws.images_dir / name), cv2.IMREAD_UNCHANGED)
         full = cv2.imread(str(tmp_path / "all" / "images" / name), cv2.IMREAD_UNCHANGED)
-        assert mine is not None and full is not None
-        assert np.array_equal(mine, full), name
+        assert mine is not None and full is not None and mine.shape == full.shape
+        diff = np.abs(mine.astype(np.int16) - full.astype(np.int16))
+        assert diff.mean() < 0.01 and diff.max() <= 1, name
     # An image lost from the workspace is undistorted again on the next run.
     lost = sorted(read)[0]
     (ws.images_dir / lost).unlink()
     assert (
-        undistort_missing(options, sfm.folder / "sparse", sfm.folder / "images", ws, sorted(read))
+        undistort_missing(
+            sfm.folder / "sparse", sfm.folder / "images", ws, [v for v in views if v.name in read]
+        )
         == 1
     )
     assert (ws.images_dir / lost).is_file()
-    assert not list((tmp_path / "few").glob(".undistort.*"))  # its temporary folder went
+    assert not list(ws.images_dir.rglob(".*"))  # no temporary file left
 
 
 def assert_visibility_is_the_workspaces(workspace: Path, ply: Path) -> None:
