@@ -92,10 +92,15 @@ def trim_mesh(mesh: PlyData, points_m: FloatArray, max_distance_m: float) -> Ply
     unused vertices are dropped and faces renumbered."""
     from scipy.spatial import cKDTree
 
-    faces = mesh.faces if mesh.faces is not None else np.zeros((0, 3), np.int64)
     dist, _ = cKDTree(points_m).query(mesh.vertices, distance_upper_bound=max_distance_m)
-    near = np.isfinite(dist)
-    keep_faces = faces[np.all(near[faces], axis=1)] if len(faces) else faces
+    return keep_vertices(mesh, np.isfinite(dist))
+
+
+def keep_vertices(mesh: PlyData, keep: npt.NDArray[np.bool_]) -> PlyData:
+    """The triangles of `mesh` whose three vertices are kept (`keep`, one flag a vertex);
+    vertices no kept triangle uses are dropped and faces renumbered."""
+    faces = mesh.faces if mesh.faces is not None else np.zeros((0, 3), np.int64)
+    keep_faces = faces[np.all(keep[faces], axis=1)] if len(faces) else faces
     used = np.zeros(len(mesh.vertices), bool)
     used[keep_faces.ravel()] = True
     new_index = np.cumsum(used) - 1

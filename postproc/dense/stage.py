@@ -599,11 +599,67 @@ def _build(
                 workspace=workspace, views=views,
             )  # fmt: skip
         if not mesh_ply.exists():
-            report["mesh"] = asdict(mesh(options.meshing, mesh_input, mesh_ply))
-        timings["meshing_s"] = time.perf_counter() - start
+            if options.mesh_carve_min_views > 0:
+                # Poisson's mesh aside, carved into place (a rerun after an interruption
+                # meshes again).
+                poisson_ply = mesh_ply.with_name(".poisson." + mesh_ply.name)
+                report["mesh"] = asdict(
+                    mesh(options.meshing, mesh_input, poisson_ply, overwrite=True)
+                )
+                timings["meshing_s"] = time.perf_counter() - start
+                start = time.perf_counter()
+                report["mesh"].update(
+                    carve_mesh(options, poisson_ply, mesh_ply, workspace, views, references)
+                )
+                poisson_ply.unlink()
+                timings["carving_s"] = time.perf_counter() - start
+            else:
+                report["mesh"] = asdict(mesh(options.meshing, mesh_input, mesh_ply))
+                timings["meshing_s"] = time.perf_counter() - start
     report["timings"] = timings
     # dense.json last: the folder's completeness marker.
     out.write_report(report, overwrite=True)
+
+
+def carve_mesh(
+    options: DenseOptions,
+    mesh_ply: Path,
+    out_ply: Path,
+    workspace: DenseWorkspace,
+    views: list[PinholeView],
+    references: list[int],
+) -> dict[str, Any]:
+    """Free-space carving (`postproc.dense.carving`) of `mesh_ply` against the depth maps
+    of `views[k]`, k in `references`, into `out_ply` (atomic); returns the mesh's new
+    "vertices" and "faces" and the "carved_vertices" for dense.json. Raises StageError
+    when nothing is left."""
+    from postproc.dense.carving import DepthView, carved_vertices
+    from postproc.dense.meshing import keep_vertices
+    from shared.formats.ply import read_ply, write_ply
+
+    surface = read_ply(mesh_ply)
+
+    def depth_views() -> Any:
+        for k in references:
+            path = workspace.depth_map_path(views[k].name)
+            if path.is_file():
+                yield DepthView(read_array(path), views[k].K, views[k].cam_from_world)
+
+    carved = carved_vertices(
+        surface.vertices,
+        depth_views(),
+        tolerance_rel=options.mesh_carve_tolerance_rel,
+        min_views=options.mesh_carve_min_views,
+    )
+    kept = keep_vertices(surface, ~carved)
+    faces = 0 if kept.faces is None else len(kept.faces)
+    if faces == 0:
+        raise StageError(
+            f"{mesh_ply}: free-space carving removed the whole mesh ({int(carved.sum())} "
+            f"of {len(carved)} vertices lie where the depth maps saw past them)"
+        )
+    write_ply(out_ply, kept, overwrite=True)
+    return {"vertices": len(kept.vertices), "faces": faces, "carved_vertices": int(carved.sum())}
 
 
 def reference_views(

@@ -16,8 +16,10 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from postproc.dense.carving import DepthView, carved_vertices
 from postproc.dense.colmap_io import (
     DenseWorkspace,
+    read_array,
     read_fusion_visibility,
     read_pinhole_views,
     write_known_pose_model,
@@ -100,6 +102,17 @@ def test_outputs_are_close_to_the_truth(dense_dir: Path, coarse_scene: WreckScen
     assert report["images"] == 7 and report["reference_images"] == 4
     assert report["depth_maps"]["computed"] == 4
     assert 6 <= report["mesh"]["octree_depth"] <= 11
+    # Carved: no vertex left where two depth maps saw past it, and Poisson's mesh gone.
+    assert report["mesh"]["vertices"] == len(mesh.vertices)
+    assert report["mesh"]["carved_vertices"] >= 0 and "carving_s" in report["timings"]
+    ws = DenseWorkspace(dense_dir / "workspace")
+    views = {v.name: v for v in read_pinhole_views(ws.sparse_dir)}
+    depth_views = [
+        DepthView(read_array(ws.depth_map_path(n)), views[n].K, views[n].cam_from_world)
+        for n in references(dense_dir)
+    ]
+    assert not carved_vertices(mesh.vertices, depth_views, tolerance_rel=0.02, min_views=2).any()
+    assert not list(dense_dir.glob("*poisson*"))
 
 
 def references(dense_dir: Path) -> list[str]:
