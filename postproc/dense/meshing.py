@@ -112,6 +112,16 @@ def keep_vertices(mesh: PlyData, keep: npt.NDArray[np.bool_]) -> PlyData:
     )
 
 
+def write_mesh(path: Path, surface: PlyData, *, empty: str, overwrite: bool = False) -> int:
+    """Write `surface` to `path` (atomic) and return its triangle count; raises
+    StageError(`empty`) instead when it has no triangle."""
+    faces = 0 if surface.faces is None else len(surface.faces)
+    if faces == 0:
+        raise StageError(empty)
+    write_ply(path, surface, overwrite=overwrite)
+    return faces
+
+
 @dataclass
 class MeshReport:
     """What meshing chose and produced."""
@@ -165,13 +175,13 @@ def mesh(
         cell = extent / 2.0**depth
         distance = options.trim_distance_spacings * max(spacing, cell)
         surface = trim_mesh(surface, cloud.vertices, distance)
-    faces = 0 if surface.faces is None else len(surface.faces)
-    if faces == 0:
-        raise StageError(
-            f"{fused_ply}: Poisson meshing gave an empty mesh (octree depth {depth}, "
-            f"point spacing {spacing:.4f} m, extent {extent:.2f} m)"
-        )
-    write_ply(mesh_ply, surface, overwrite=overwrite)
+    faces = write_mesh(
+        mesh_ply,
+        surface,
+        empty=f"{fused_ply}: Poisson meshing gave an empty mesh (octree depth {depth}, "
+        f"point spacing {spacing:.4f} m, extent {extent:.2f} m)",
+        overwrite=overwrite,
+    )
     return MeshReport(
         octree_depth=depth,
         spacing_m=spacing,

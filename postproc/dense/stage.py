@@ -634,8 +634,8 @@ def carve_mesh(
     "vertices" and "faces" and the "carved_vertices" for dense.json. Raises StageError
     when nothing is left."""
     from postproc.dense.carving import DepthView, carved_vertices
-    from postproc.dense.meshing import keep_vertices
-    from shared.formats.ply import read_ply, write_ply
+    from postproc.dense.meshing import keep_vertices, write_mesh
+    from shared.formats.ply import read_ply
 
     surface = read_ply(mesh_ply)
 
@@ -652,13 +652,13 @@ def carve_mesh(
         min_views=options.mesh_carve_min_views,
     )
     kept = keep_vertices(surface, ~carved)
-    faces = 0 if kept.faces is None else len(kept.faces)
-    if faces == 0:
-        raise StageError(
-            f"{mesh_ply}: free-space carving removed the whole mesh ({int(carved.sum())} "
-            f"of {len(carved)} vertices lie where the depth maps saw past them)"
-        )
-    write_ply(out_ply, kept, overwrite=True)
+    faces = write_mesh(
+        out_ply,
+        kept,
+        empty=f"{mesh_ply}: free-space carving removed the whole mesh ({int(carved.sum())} "
+        f"of {len(carved)} vertices lie where the depth maps saw past them)",
+        overwrite=True,
+    )
     return {"vertices": len(kept.vertices), "faces": faces, "carved_vertices": int(carved.sum())}
 
 

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from postproc.dense.carving import DepthView, carved_vertices, free_space_votes
-from postproc.dense.meshing import keep_vertices
+from postproc.dense.meshing import keep_vertices, write_mesh
+from shared.errors import StageError
 from shared.formats.ply import PlyData
 from shared.geometry import look_at
 
@@ -97,3 +100,13 @@ def test_votes_need_a_depth_in_front_of_the_camera(tolerance: float) -> None:
     behind = np.array([[0.0, -4.0, 0.0]])
     seen_past, agrees = free_space_votes(behind, view, tolerance_rel=tolerance)
     assert not seen_past.any() and not agrees.any()
+
+
+def test_a_mesh_with_no_triangle_left_is_an_error_and_not_written(tmp_path: Path) -> None:
+    empty = PlyData(vertices=np.zeros((3, 3)), faces=np.zeros((0, 3), np.int64))
+    with pytest.raises(StageError, match="carving removed the whole mesh"):
+        write_mesh(tmp_path / "mesh.ply", empty, empty="x.ply: carving removed the whole mesh")
+    assert not list(tmp_path.iterdir())
+    one = PlyData(vertices=np.eye(3), faces=np.array([[0, 1, 2]]))
+    assert write_mesh(tmp_path / "mesh.ply", one, empty="unused") == 1
+    assert (tmp_path / "mesh.ply").is_file()
