@@ -12,7 +12,8 @@
   over the reference views' model (`postproc.dense.fusion`);
 - `fused_corrected.ply`: the same with underwater colour correction (when asked);
 - `fused_supported.ply`: the fused points seen in `mesh_min_images` images or more;
-- `mesh.ply`: screened Poisson mesh of those, octree depth from the scene, trimmed;
+- `mesh.ply`: screened Poisson mesh of those, octree depth from the scene, trimmed, then
+  carved where the depth maps saw past it (`postproc.dense.carving`);
 - `dense.json`: backend, parameters chosen, counts and timings (s, s per image).
 
 Depth maps come from COLMAP PatchMatch when pycolmap was built with CUDA, else from our
@@ -37,6 +38,7 @@ import functools
 import logging
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
@@ -639,7 +641,7 @@ def carve_mesh(
 
     surface = read_ply(mesh_ply)
 
-    def depth_views() -> Any:
+    def depth_views() -> Iterator[DepthView]:
         for k in references:
             path = workspace.depth_map_path(views[k].name)
             if path.is_file():
