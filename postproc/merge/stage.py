@@ -517,30 +517,42 @@ def _observe(
     grids: Sequence[Any],
     target_names: Sequence[str],
 ) -> list[Observation]:
-    """Detect, assign and PnP every keyframe of every session (with a progress bar)."""
+    """Detect, assign and PnP every keyframe of every session (with a progress bar).
+
+    Reading and detection run over a thread pool, one keyframe a task (OpenCV releases
+    the GIL; 300 keyframes of the 10-minute bench dive: 6.0 s against 7.9 s in one
+    thread, whose detector already uses parts of both cores); the rest follows in
+    keyframe order."""
+    import concurrent.futures
+    import os
+
     import cv2
 
     from postproc.merge.paper import per_tag_target_pose
     from postproc.merge.target_pose import estimate_target_pose
-    from shared.calibration.aprilgrid_detection import detect_tags, group_by_target
+    from shared.calibration.aprilgrid_detection import TagDetection, detect_tags, group_by_target
     from shared.progress import progress_bar
+
+    def detect(path: Path) -> list[TagDetection]:
+        # IMREAD_GRAYSCALE always decodes to 8-bit.
+        image = cast(npt.NDArray[np.uint8] | None, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+        if image is None:
+            raise InputError(f"{path}: cannot read the keyframe image")
+        return detect_tags(image, options.detection)
 
     total = sum(len(s.images) for s in sessions)
     observations: list[Observation] = []
     foreign: dict[int, int] = {}
     bar = progress_bar(total=total, desc="merge: keyframes", unit="kf")
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
     try:
         for session in sessions:
             index_of = {int(s): i for i, s in enumerate(session.keyframes.stamps_ns.tolist())}
-            for stamp, path in sorted(session.images.items()):
+            keyframes = [(t, p) for t, p in sorted(session.images.items()) if t in index_of]
+            bar.update(len(session.images) - len(keyframes))
+            found = pool.map(detect, [path for _, path in keyframes])
+            for (stamp, _), detections in zip(keyframes, found, strict=True):
                 bar.update(1)
-                if stamp not in index_of:
-                    continue
-                # IMREAD_GRAYSCALE always decodes to 8-bit.
-                image = cast(npt.NDArray[np.uint8], cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
-                if image is None:
-                    raise InputError(f"{path}: cannot read the keyframe image")
-                detections = detect_tags(image, options.detection)
                 grid_observations, others = group_by_target(
                     detections, grids, min_tags=options.min_tags
                 )
@@ -587,6 +599,7 @@ def _observe(
                         )
                     )
     finally:
+        pool.shutdown(cancel_futures=True)
         bar.close()
     if foreign:
         log.info(
