@@ -16,6 +16,7 @@ Pixel convention: COLMAP puts the centre of the top-left pixel at (0.5, 0.5), Op
 from __future__ import annotations
 
 import concurrent.futures
+import functools
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -155,25 +156,30 @@ def undistort_images(
     missing = [name for name in targets if name not in camera_of]
     if missing:
         raise InputError(f"{model_dir}: no image {missing[0]} in the model")
-    maps: dict[tuple[int, PinholeTarget], ImageMap] = {}
-    jobs = []
-    for name, pinhole in targets.items():
-        key = (camera_of[name], pinhole)
-        if key not in maps:
-            maps[key] = undistortion_map(rec.cameras[camera_of[name]], pinhole)
-        jobs.append((name, maps[key]))
+    threads = workers or os.cpu_count() or 1
+    cameras = {camera_of[name]: rec.cameras[camera_of[name]] for name in targets}
 
-    def one(job: tuple[str, ImageMap]) -> None:
-        undistort_image(Path(image_dir) / job[0], Path(out_dir) / job[0], job[1])
+    # A few maps at a time (8 MB each at 960x540): a model may give every image its own
+    # camera. The images run camera by camera, so each map is made about once.
+    @functools.lru_cache(maxsize=2 * threads)
+    def image_map(key: tuple[int, PinholeTarget]) -> ImageMap:
+        return undistortion_map(cameras[key[0]], key[1])
+
+    jobs = sorted(
+        (((camera_of[name], targets[name]), name) for name in targets),
+        key=lambda job: (job[0][0], job[1]),
+    )
+
+    def one(job: tuple[tuple[int, PinholeTarget], str]) -> None:
+        key, name = job
+        undistort_image(Path(image_dir) / name, Path(out_dir) / name, image_map(key))
         if on_done is not None:
             on_done()
 
     cv2_threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # the pool is the parallelism
     try:
-        with concurrent.futures.ThreadPoolExecutor(
-            max_workers=workers or os.cpu_count() or 1
-        ) as pool:
+        with concurrent.futures.ThreadPoolExecutor(max_workers=threads) as pool:
             for future in [pool.submit(one, job) for job in jobs]:
                 future.result()
     finally:
