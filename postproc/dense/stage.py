@@ -601,23 +601,21 @@ def _build(
                 workspace=workspace, views=views,
             )  # fmt: skip
         if not mesh_ply.exists():
-            if options.mesh_carve_min_views > 0:
-                # Poisson's mesh aside, carved into place (a rerun after an interruption
-                # meshes again).
-                poisson_ply = mesh_ply.with_name(".poisson." + mesh_ply.name)
-                report["mesh"] = asdict(
-                    mesh(options.meshing, mesh_input, poisson_ply, overwrite=True)
-                )
-                timings["meshing_s"] = time.perf_counter() - start
+            # With carving, Poisson's mesh goes aside and is carved into place (a rerun
+            # after an interruption meshes again).
+            carve = options.mesh_carve_min_views > 0
+            poisson_ply = mesh_ply.with_name(".poisson." + mesh_ply.name) if carve else mesh_ply
+            report["mesh"] = asdict(mesh(options.meshing, mesh_input, poisson_ply, overwrite=carve))
+            timings["meshing_s"] = time.perf_counter() - start
+            if carve:
                 start = time.perf_counter()
                 report["mesh"].update(
                     carve_mesh(options, poisson_ply, mesh_ply, workspace, views, references)
                 )
                 poisson_ply.unlink()
                 timings["carving_s"] = time.perf_counter() - start
-            else:
-                report["mesh"] = asdict(mesh(options.meshing, mesh_input, mesh_ply))
-                timings["meshing_s"] = time.perf_counter() - start
+        else:
+            timings["meshing_s"] = time.perf_counter() - start
     report["timings"] = timings
     # dense.json last: the folder's completeness marker.
     out.write_report(report, overwrite=True)

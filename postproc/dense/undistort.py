@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from shared.errors import InputError
+from shared.fsutil import write_bytes_atomic
 
 # Below this ratio of PINHOLE to source focal length (COLMAP's max_image_size shrank the
 # undistorted image), the source is first shrunk by area averaging, so that bilinear
@@ -128,11 +129,10 @@ def undistort_image(source: Path, target: Path, image_map: ImageMap) -> None:
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0,
     )
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.stem}.part{target.suffix}")
-    if not cv2.imwrite(str(tmp), out, _write_params(target)):
-        raise InputError(f"{target}: cannot write the undistorted image")
-    tmp.replace(target)
+    ok, encoded = cv2.imencode(target.suffix, out, _write_params(target))
+    if not ok:
+        raise InputError(f"{target}: cannot encode the undistorted image as {target.suffix}")
+    write_bytes_atomic(target, encoded.tobytes(), overwrite=True)
 
 
 def undistort_images(

@@ -128,21 +128,18 @@ def calibration_xml(camera: ExportCamera) -> str:
 
 
 def undistort_maps(camera: ExportCamera) -> tuple[npt.NDArray[np.float32], ...]:
-    """cv2 remap tables from the recorded image to the pinhole with the same K."""
-    import cv2
+    """cv2 remap tables from the recorded image to the pinhole with the same K (the dense
+    stage's `undistortion_map`, through COLMAP's own projection of the camera's model)."""
+    import pycolmap
 
-    # OpenCV puts pixel centres at integers, COLMAP at +0.5.
-    K = camera.intrinsic_matrix()
-    K[0, 2] -= 0.5
-    K[1, 2] -= 0.5
-    size = (camera.width, camera.height)
-    if camera.fisheye:
-        maps = cv2.fisheye.initUndistortRectifyMap(
-            K, camera.distortion(), np.eye(3), K, size, cv2.CV_32FC1
-        )
-    else:
-        maps = cv2.initUndistortRectifyMap(K, camera.distortion(), None, K, size, cv2.CV_32FC1)
-    return (np.asarray(maps[0], np.float32), np.asarray(maps[1], np.float32))
+    from postproc.dense.undistort import PinholeTarget, undistortion_map
+
+    recorded = pycolmap.Camera(
+        model=camera.model, width=camera.width, height=camera.height, params=list(camera.params)
+    )
+    pinhole = PinholeTarget.of(camera.intrinsic_matrix(), camera.width, camera.height)
+    image_map = undistortion_map(recorded, pinhole)
+    return (image_map.map_x, image_map.map_y)
 
 
 def write_camera_reference(
