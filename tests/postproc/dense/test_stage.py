@@ -104,7 +104,7 @@ def test_outputs_are_close_to_the_truth(dense_dir: Path, coarse_scene: WreckScen
     assert 6 <= report["mesh"]["octree_depth"] <= 11
     # Carved: no vertex left where two depth maps saw past it, and Poisson's mesh gone.
     assert report["mesh"]["vertices"] == len(mesh.vertices)
-    assert report["mesh"]["carved_vertices"] >= 0 and "carving_s" in report["timings"]
+    assert "carved_vertices" in report["mesh"] and "carving_s" in report["timings"]
     ws = DenseWorkspace(dense_dir / "workspace")
     views = {v.name: v for v in read_pinhole_views(ws.sparse_dir)}
     depth_views = [
