@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any, cast
 
 import numpy as np
@@ -29,6 +30,7 @@ from postproc.merge.places import (
     local_map,
     pair_place_mean,
     place_candidates,
+    refine_place,
     verify_candidate,
     weighted_pose_mean,
 )
@@ -121,6 +123,24 @@ def match_sessions(
     return results
 
 
+def _nearby(
+    features: Sequence[KeyframeFeatures],
+    poses: Mapping[int, FloatArray],
+    keyframe: KeyframeFeatures,
+    window_s: float,
+) -> list[tuple[KeyframeFeatures, FloatArray]]:
+    """(features, `T_S_C`) of the session's other keyframes within `window_s` of one,
+    nearest in time first."""
+    window = ns_from_seconds(window_s)
+    out = [
+        (f, poses[f.stamp_ns])
+        for f in features
+        if f is not keyframe and abs(f.stamp_ns - keyframe.stamp_ns) <= window
+    ]
+    out.sort(key=lambda n: abs(n[0].stamp_ns - keyframe.stamp_ns))
+    return out
+
+
 def _match_pair(
     options: PlaceOptions,
     a: Any,
@@ -148,13 +168,7 @@ def _match_pair(
         query, reference = fb[q], fa[d]
         evidence.candidates.append((query.stamp_ns, reference.stamp_ns, score))
         if d not in maps:
-            window = ns_from_seconds(options.neighbour_window_s)
-            neighbours = [
-                (f, pose_a[f.stamp_ns])
-                for f in fa
-                if f is not reference and abs(f.stamp_ns - reference.stamp_ns) <= window
-            ]
-            neighbours.sort(key=lambda n: abs(n[0].stamp_ns - reference.stamp_ns))
+            neighbours = _nearby(fa, pose_a, reference, options.neighbour_window_s)
             maps[d] = local_map(
                 reference, pose_a[reference.stamp_ns], neighbours, options, focal_px=focal
             )
@@ -173,6 +187,22 @@ def _match_pair(
         evidence.inliers_tried.append(inliers)
         if result is None:
             continue
+        if options.refine_places:
+            refined = refine_place(
+                result,
+                maps[d],
+                reference,
+                pose_a[reference.stamp_ns],
+                query,
+                pose_b[query.stamp_ns],
+                _nearby(fa, pose_a, reference, options.refine_window_s),
+                _nearby(fb, pose_b, query, options.refine_window_s),
+                options,
+                focal_px=focal,
+            )
+            if refined is None:
+                continue
+            result = replace(result, a_from_b=refined[0], covariance=refined[1])
         evidence.verified.append((query.stamp_ns, reference.stamp_ns, result.inliers))
         verified.append((query.stamp_ns, reference.stamp_ns, result))
     if len(verified) < options.min_consistent:
@@ -221,6 +251,7 @@ def _match_pair(
         keyframe_noise_a=keyframe_noise[a.name],
         keyframe_noise_b=keyframe_noise[b.name],
         max_whitened_sq=options.max_candidate_chi2,
+        covariances=(np.array([v[2].covariance for v in kept]) if options.refine_places else None),
     )
     used = pair.inliers
     rejected = int(np.count_nonzero(~used))

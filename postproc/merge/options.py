@@ -35,7 +35,11 @@ class PlaceOptions:
     min_inliers: fewest PnP inliers of a verified candidate (SVIn2's loop closures: 25).
     max_tilt_deg: largest relative roll/pitch of the free 6-DoF PnP's `T_Sa_Sb` (a coarse
         gravity check; the candidate itself is then refined in yaw and translation
-        with roll and pitch from the IMUs, `refine_yaw_translation`).
+        with roll and pitch from the IMUs, `refine_place` or `refine_yaw_translation`).
+        10, not 3 as before `refine_places`: a map triangulated from keyframes with
+        0.15 deg of SLAM error each tilts the PnP by several degrees, and at 3 deg
+        two thirds of the true places of the simulated wreck's 120 s dives were lost
+        (one-off script).
     consistency_rotation_deg / consistency_translation_m: two candidates agree when
         their `T_Sa_Sb` differ by less than both.
     min_consistent: fewest agreeing verified candidates for a pair to be mergeable.
@@ -54,10 +58,19 @@ class PlaceOptions:
         `places.pair_place_mean`). None: keep every consistent candidate.
     rotation_from_images: take each candidate's yaw from the query and reference images
         (essential matrix) instead of the PnP against the triangulated local map (off:
-        on the simulated wreck it was no better, 0.8 against 0.7 deg per candidate).
+        on the simulated wreck it was no better, 0.8 against 0.7 deg per candidate;
+        without effect under `refine_places`).
     gravity_sigma_deg: roll/pitch error of each session's gravity alignment (deg, 1
         sigma per axis) given to the pairs' relative tilt when the merge has no tilt
         prior of its own (`MergeOptions.tilt_sigma_deg`).
+    refine_places: each verified candidate's `T_Sa_Sb` from a bundle adjustment of the
+        keyframes around its reference and its query (`places.refine_place`) instead of
+        the one PnP; refine_window_s: those keyframes lie within this (s) of each;
+        refine_neighbours: at most this many of them per side (nearest in time);
+        refine_min_observations: a neighbour joins with at least this many landmarks
+        matched; refine_pixel_sigma_px: the image noise of the adjustment (pixels, 1
+        sigma, Huber-weighted); refine_max_change_deg: a candidate whose adjustment
+        turns `T_Sa_Sb` further than this from its PnP is dropped (a false match).
     """
 
     features_per_keyframe: int = 1000
@@ -75,7 +88,7 @@ class PlaceOptions:
     triangulation_reprojection_px: float = 6.0
     ransac_reprojection_px: float = 4.0
     min_inliers: int = 25
-    max_tilt_deg: float = 3.0
+    max_tilt_deg: float = 10.0
     consistency_rotation_deg: float = 1.5
     consistency_translation_m: float = 0.25
     min_consistent: int = 3
@@ -87,6 +100,12 @@ class PlaceOptions:
     max_candidate_chi2: float | None = 18.5
     gravity_sigma_deg: float = 0.1
     rotation_from_images: bool = False
+    refine_places: bool = True
+    refine_window_s: float = 3.0
+    refine_neighbours: int = 6
+    refine_min_observations: int = 10
+    refine_pixel_sigma_px: float = 1.0
+    refine_max_change_deg: float = 5.0
 
 
 @dataclass(kw_only=True)

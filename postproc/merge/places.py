@@ -14,7 +14,12 @@ transform `T_Sa_Sb`. Per pair of sessions (a, b):
    `T_Sa_Sb = T_Sa_Cq @ inv(T_Sb_Cq)`. Both session frames are
    gravity-aligned by their IMUs, so a candidate whose relative roll/pitch
    exceeds `max_tilt_deg` is refused: gravity constrains the two angles no
-   image does well.
+   image does well. The candidate is then refined by a bundle adjustment of
+   the keyframes around the reference and around the query (`refine_place`):
+   the images fix the map's shape and the keyframes' poses relative to one
+   another, so each keyframe's own SLAM error is averaged over its
+   neighbourhood instead of entering whole, and the adjustment's marginal
+   covariance says how the place trades yaw against translation.
 3. **Consistency.** Verified candidates must agree on `T_Sa_Sb`
    (`consistent_candidates`): the largest group within the rotation and
    translation tolerances of one another wins; fewer than `min_consistent`
@@ -249,10 +254,12 @@ def triangulate(
 
 @dataclass(frozen=True)
 class LocalMap:
-    """Points (N, 3) in a session frame with the reference keyframe's descriptors (N, 32)."""
+    """Points (N, 3) in a session frame with the reference keyframe's descriptors (N, 32)
+    and the indices (N,) of the reference's features they were triangulated from."""
 
     points_session: FloatArray
     descriptors: UInt8Array
+    feature_index: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 def local_map(
@@ -324,7 +331,11 @@ def local_map(
     if not chosen:
         return LocalMap(np.zeros((0, 3)), np.zeros((0, 32), dtype=np.uint8))
     keys = sorted(chosen)
-    return LocalMap(np.array([chosen[k] for k in keys]), reference.descriptors[keys])
+    return LocalMap(
+        np.array([chosen[k] for k in keys]),
+        reference.descriptors[keys],
+        np.array(keys, dtype=np.int64),
+    )
 
 
 def triangulate_views(
@@ -346,12 +357,17 @@ class Verification:
     """A geometrically verified candidate: `T_Sa_Sb` from one query keyframe of b.
 
     inliers: PnP inliers; matches: 2D-3D matches tried; tilt_deg: relative roll/pitch.
+    query_features / map_points (inliers,): the inliers' feature in the query and point
+    of the local map. covariance: (6, 6) of `a_from_b` where measured (`refine_place`).
     """
 
     a_from_b: FloatArray
     inliers: int
     matches: int
     tilt_deg: float
+    query_features: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    map_points: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    covariance: FloatArray | None = None
 
 
 def verify_candidate(
@@ -404,6 +420,18 @@ def verify_candidate(
     tilt = float(np.rad2deg(np.linalg.norm(tilt_vector_rad(six_dof[:3, :3]))))
     if tilt > options.max_tilt_deg:
         return None, len(matches), len(chosen)
+    if options.refine_places:
+        # `refine_place` adjusts the query's pose with the rest: keep the 6-DoF inliers
+        # (the yaw-only fit below would lose those the query's own tilt error moves).
+        verification = Verification(
+            make_pose(_rot_z(_yaw(six_dof)), six_dof[:3, 3]),
+            len(chosen),
+            len(matches),
+            tilt,
+            index[chosen, 0].astype(np.int64),
+            index[chosen, 1].astype(np.int64),
+        )
+        return verification, len(matches), len(chosen)
     # Both session frames are gravity-aligned: refine yaw and translation only, with
     # roll and pitch from the IMUs (the image alone trades tilt against translation).
     tolerance = options.ransac_reprojection_px / focal_px
@@ -448,7 +476,15 @@ def verify_candidate(
             # The map must still agree with the images' yaw (else the pair is suspect).
             if len(kept) >= options.min_inliers:
                 a_from_b, chosen = image_yaw, kept
-    return Verification(a_from_b, len(chosen), len(matches), tilt), len(matches), len(chosen)
+    verification = Verification(
+        a_from_b,
+        len(chosen),
+        len(matches),
+        tilt,
+        index[chosen, 0].astype(np.int64),
+        index[chosen, 1].astype(np.int64),
+    )
+    return verification, len(matches), len(chosen)
 
 
 def relative_rotation(
@@ -476,6 +512,182 @@ def relative_rotation(
     if count < options.min_inliers:
         return None
     return np.asarray(rotation, dtype=np.float64)
+
+
+def _window_observations(
+    descriptors: UInt8Array,
+    landmarks: FloatArray,
+    landmark_ids: IntArray,
+    neighbour: KeyframeFeatures,
+    session_from_cam: FloatArray,
+    options: PlaceOptions,
+    *,
+    tolerance: float,
+) -> list[tuple[int, FloatArray]]:
+    """(landmark, ray) seen by one neighbour: its features matched to the landmarks'
+    descriptors, kept where the landmark reprojects within `tolerance` (z=1 units)."""
+    matches = match_descriptors(descriptors, neighbour.descriptors, ratio=options.ratio)
+    if not matches:
+        return []
+    index = np.array(matches)
+    rays = neighbour.normalised[index[:, 1]]
+    error = reprojection_errors(landmarks[index[:, 0]], rays, invert_pose(session_from_cam))
+    return [
+        (int(landmark_ids[i]), ray)
+        for (i, _), ray, e in zip(matches, rays, error, strict=True)
+        if e <= tolerance
+    ]
+
+
+def refine_place(
+    verification: Verification,
+    reference_map: LocalMap,
+    reference: KeyframeFeatures,
+    session_a_from_reference: FloatArray,
+    query: KeyframeFeatures,
+    session_b_from_query: FloatArray,
+    neighbours_a: Sequence[tuple[KeyframeFeatures, FloatArray]],
+    neighbours_b: Sequence[tuple[KeyframeFeatures, FloatArray]],
+    options: PlaceOptions,
+    *,
+    focal_px: float,
+) -> tuple[FloatArray, FloatArray] | None:
+    """`T_Sa_Sb` (4, 4) of a verified candidate and its covariance (6, 6, `[δθ, δt]` in
+    Sa) from a bundle adjustment of both keyframes' neighbourhoods, or None when it
+    cannot be set up or does not converge.
+
+    The PnP of one query keyframe against a map triangulated from two or three SLAM
+    poses carries those poses' own errors twice: the query's pose error enters
+    `T_Sa_Sb` directly, and the neighbours' relative pose errors warp the map, which
+    turns the PnP (0.15 deg of SLAM error per keyframe gave candidates up to 1 deg off
+    on the simulated wreck). Here the candidate's PnP inliers become landmarks seen by
+    the reference, the query and the keyframes around each (`neighbours_a` in a,
+    `neighbours_b` in b, as (features, `T_S_C`), matched to the landmarks'
+    descriptors); every camera pose is free but held to its SLAM pose with the
+    keyframe noise (`keyframe_noise_*`), b's through the unknown `T_Sa_Sb`, whose roll
+    and pitch stay at zero (both frames are gravity-aligned). The images then fix the
+    map's shape and each keyframe's pose relative to its neighbours, and the SLAM
+    error that is left is the mean over the neighbourhoods. The covariance (the
+    adjustment's marginal) keeps how one place trades yaw against translation: the
+    images fix where the filmed structure lies far better than the yaw about it.
+    """
+    import gtsam
+
+    landmarks = reference_map.points_session[verification.map_points]
+    if landmarks.shape[0] < options.min_inliers:
+        return None
+    ids = np.arange(landmarks.shape[0], dtype=np.int64)
+    tolerance = options.triangulation_reprojection_px / focal_px
+    a_from_b = make_pose(_rot_z(_yaw(verification.a_from_b)), verification.a_from_b[:3, 3])
+    # Cameras: (pose in its own session, session "a" or "b", [(landmark, ray)]).
+    cameras: list[tuple[FloatArray, str, list[tuple[int, FloatArray]]]] = [
+        (
+            session_a_from_reference,
+            "a",
+            list(
+                zip(
+                    ids.tolist(),
+                    reference.normalised[reference_map.feature_index[verification.map_points]],
+                    strict=True,
+                )
+            ),
+        ),
+        (
+            session_b_from_query,
+            "b",
+            list(zip(ids.tolist(), query.normalised[verification.query_features], strict=True)),
+        ),
+    ]
+    reference_descriptors = reference_map.descriptors[verification.map_points]
+    query_descriptors = query.descriptors[verification.query_features]
+    for side, neighbours, descriptors in (
+        ("a", neighbours_a, reference_descriptors),
+        ("b", neighbours_b, query_descriptors),
+    ):
+        for features, session_from_cam in neighbours[: options.refine_neighbours]:
+            in_a = session_from_cam if side == "a" else a_from_b @ session_from_cam
+            seen = _window_observations(
+                descriptors, landmarks, ids, features, in_a, options, tolerance=tolerance
+            )
+            if len(seen) >= options.refine_min_observations:
+                cameras.append((session_from_cam, side, seen))
+    if len(cameras) < 3:
+        return None
+    X = gtsam.symbol_shorthand.X
+    L = gtsam.symbol_shorthand.L
+    T = gtsam.symbol_shorthand.T(0)
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    # Robust: a keyframe whose SLAM pose is grossly wrong must not bend the rest.
+    pose_noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(2.0),
+        gtsam.noiseModel.Diagonal.Sigmas(
+            np.array(
+                [np.deg2rad(options.keyframe_noise_rotation_deg)] * 3
+                + [options.keyframe_noise_translation_m] * 3
+            )
+        ),
+    )
+    pixel_noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+        gtsam.noiseModel.Isotropic.Sigma(2, options.refine_pixel_sigma_px / focal_px),
+    )
+    calibration = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+    # Roll and pitch of T_Sa_Sb held at zero, yaw and translation free.
+    graph.add(
+        gtsam.PriorFactorPose3(
+            T,
+            gtsam.Pose3(a_from_b),
+            gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-6, 1e-6, 10.0, 100.0, 100.0, 100.0])),
+        )
+    )
+    values.insert(T, gtsam.Pose3(a_from_b))
+    for k, (session_from_cam, side, seen) in enumerate(cameras):
+        if side == "a":
+            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(session_from_cam), pose_noise))
+            values.insert(X(k), gtsam.Pose3(session_from_cam))
+        else:
+            graph.add(gtsam.BetweenFactorPose3(T, X(k), gtsam.Pose3(session_from_cam), pose_noise))
+            values.insert(X(k), gtsam.Pose3(a_from_b @ session_from_cam))
+        for landmark, ray in seen:
+            graph.add(
+                gtsam.GenericProjectionFactorCal3_S2(
+                    np.asarray(ray, dtype=np.float64),
+                    pixel_noise,
+                    X(k),
+                    L(landmark),
+                    calibration,
+                )
+            )
+    for landmark in ids.tolist():
+        values.insert(L(landmark), np.asarray(landmarks[landmark], dtype=np.float64))
+    parameters = gtsam.LevenbergMarquardtParams()
+    parameters.setMaxIterations(30)
+    try:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, parameters).optimize()
+    except RuntimeError:
+        return None
+    refined = np.asarray(result.atPose3(T).matrix(), dtype=np.float64)
+    if not np.all(np.isfinite(refined)):
+        return None
+    # The adjustment corrects a PnP against a map warped by its keyframes' SLAM errors
+    # by a degree or two; one that turned much further went astray (a false match).
+    residual = pose_residuals(refined[None], a_from_b)[0]
+    if np.rad2deg(np.linalg.norm(residual[:3])) > options.refine_max_change_deg:
+        return None
+    try:
+        body = gtsam.Marginals(graph, result).marginalCovariance(T)
+    except RuntimeError:
+        return None
+    # GTSAM perturbs on the right (T Exp([ω, v]), body frame); `[δθ, δt]` is on the left.
+    rotate = np.kron(np.eye(2), refined[:3, :3])
+    covariance = rotate @ np.asarray(body, dtype=np.float64) @ rotate.T
+    return make_pose(_rot_z(_yaw(refined)), refined[:3, 3]), 0.5 * (covariance + covariance.T)
+
+
+def _yaw(pose: FloatArray) -> float:
+    R = pose[:3, :3]
+    return float(np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1]))
 
 
 def reprojection_errors(
@@ -740,6 +952,7 @@ def pair_place_mean(
     keyframe_noise_a: FloatArray | None = None,
     keyframe_noise_b: FloatArray | None = None,
     max_whitened_sq: float | None = None,
+    covariances: FloatArray | None = None,
 ) -> PairMean:
     """Generalised least-squares `T_Sa_Sb` from candidates whose errors pivot about places.
 
@@ -779,6 +992,10 @@ def pair_place_mean(
     (`consistent_candidates`) compares the candidates at Sb's origin, where a yaw error
     of 1 deg at a place 15 m away is 26 cm, so its translation tolerance must be wide;
     here the translation is tested where it pivots, to centimetres. None: no test.
+
+    covariances (N, 6, 6): each candidate's own measured covariance (`[δθ, δt]` in Sa,
+    `refine_place`, its keyframes' SLAM errors included): it then stands for the
+    noise estimated from the scatter, the places' shared error and the keyframe noise.
     """
     T = np.asarray(poses, dtype=np.float64)
     keep = np.ones(T.shape[0], dtype=bool)
@@ -799,6 +1016,7 @@ def pair_place_mean(
             iterations=iterations,
             keyframe_noise_a=keyframe_noise_a,
             keyframe_noise_b=keyframe_noise_b,
+            covariances=None if covariances is None else np.asarray(covariances)[chosen],
         )
         if max_whitened_sq is None or len(chosen) <= 3:
             break
@@ -832,6 +1050,7 @@ def _pair_place_gls(
     iterations: int,
     keyframe_noise_a: FloatArray | None,
     keyframe_noise_b: FloatArray | None,
+    covariances: FloatArray | None = None,
 ) -> tuple[PairMean, FloatArray]:
     """`pair_place_mean` over the given candidates; with each one's whitened squared
     residual (N,) over the free axes."""
@@ -843,9 +1062,9 @@ def _pair_place_gls(
     # reference camera (its local map), b's through the query camera.
     shared_a = np.minimum.outer(ta, ta)[:, None, :] * rate_a[None, :, None]
     shared_b = np.minimum.outer(tb, tb)[:, None, :] * rate_b[None, :, None]
-    if keyframe_noise_a is not None:
+    if keyframe_noise_a is not None and covariances is None:
         shared_a = shared_a + same_keyframe(ta)[:, None, :] * keyframe_noise_a[None, :, None]
-    if keyframe_noise_b is not None:
+    if keyframe_noise_b is not None and covariances is None:
         shared_b = shared_b + same_keyframe(tb)[:, None, :] * keyframe_noise_b[None, :, None]
     mean = np.asarray(start, dtype=np.float64).copy()
     design = np.tile(np.eye(6), (n, 1))
@@ -865,11 +1084,16 @@ def _pair_place_gls(
             Q[i] = pivot_jacobian(mean[:3, 3] - query_positions[i])
         pivoted = np.einsum("iab,ib->ia", np.linalg.inv(Q), r)
         pivoted -= np.median(pivoted, axis=0)
-        noise, shared = candidate_noise(pivoted, clusters, floor=floor)
+        if covariances is None:
+            noise, shared = candidate_noise(pivoted, clusters, floor=floor)
+        else:
+            noise, shared = floor, np.zeros(6)
         sigma = np.einsum("iak,ikj,jbk->iajb", A, shared_a, A)
         sigma += np.einsum("iak,ikj,jbk->iajb", B, shared_b, B)
         sigma += np.einsum("iak,k,ij,jbk->iajb", Q, shared, same, Q)
         sigma += np.einsum("iak,k,ij,jbk->iajb", Q, noise, np.eye(n), Q)
+        if covariances is not None:
+            sigma += np.einsum("ij,iab->iajb", np.eye(n), covariances)
         sigma = sigma.reshape(6 * n, 6 * n)
         solved = np.linalg.solve(sigma, np.column_stack((design, r.reshape(-1))))
         information = design.T @ solved[:, :6]

@@ -13,6 +13,7 @@ from postproc.merge.places import (
     consistent_candidates,
     extract_features,
     pair_place_mean,
+    pivot_jacobian,
     place_candidates,
     refine_yaw_translation,
     reprojection_errors,
@@ -279,3 +280,62 @@ def test_vocabulary_scores_the_same_wreck_above_another():
     with pytest.raises(ValueError, match="descriptors for"):
         build_vocabulary([views[0][:10]], words=200, sample=100, seed=0)
     assert place_candidates(vectors[:0], vectors, per_query=1, min_score=0.0) == []
+
+
+def test_pair_place_mean_uses_each_candidates_measured_covariance():
+    # Each candidate (a refined place) knows its structure's position to millimetres
+    # but its yaw only to 0.5 deg, about the filmed structure 2.5 m ahead of the query
+    # camera: its covariance says so. The scatter model pivots at the cameras instead.
+    truth = make_pose(_rz(0.3), [1.0, 2.0, 0.0])
+    cameras = np.array([[9.0, 8.0, -1.0], [-6.0, 9.0, 0.5], [8.0, -7.0, 0.0], [-9.0, -5.0, -0.5]])
+    ahead = np.array([[0.0, 2.5, 0.0], [2.5, 0.0, 0.0], [0.0, -2.5, 0.0], [-2.5, 0.0, 0.0]])
+    rate = np.array([1e-12] * 6)
+    floor = np.array([np.deg2rad(0.01) ** 2] * 3 + [0.002**2] * 3)
+    own = np.diag([1e-12, 1e-12, np.deg2rad(0.5) ** 2, 0.003**2, 0.003**2, 0.003**2])
+    with_cov: list[tuple[float, float]] = []
+    without: list[tuple[float, float]] = []
+    d2 = []
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        poses, positions, covariances = [], [], []
+        for camera, offset in zip(cameras, ahead, strict=True):
+            for _ in range(3):
+                pivot = camera + offset + rng.normal(0, 0.3, 3)
+                yaw = rng.normal(0, np.deg2rad(0.5))
+                poses.append(_pivoted(truth, yaw, pivot, rng.normal(0, 0.003, 3)))
+                positions.append(camera)
+                J = pivot_jacobian(truth[:3, 3] - pivot)
+                covariances.append(J @ own @ J.T)
+        poses_a, positions_a = np.array(poses), np.array(positions)
+        times = np.repeat(30.0 * np.arange(len(cameras)), 3)
+        common = dict(
+            rate_a=rate,
+            rate_b=rate,
+            clusters=candidate_clusters(times, times, gap_s=5.0),
+            floor=floor,
+            start=poses_a[0],
+            fixed_axes=2,
+        )
+        mean = pair_place_mean(
+            poses_a,
+            times,
+            times,
+            positions_a,
+            positions_a,
+            covariances=np.array(covariances),
+            **common,
+        )
+        plain = pair_place_mean(poses_a, times, times, positions_a, positions_a, **common)
+        for out, result in ((with_cov, mean), (without, plain)):
+            rotation, translation = pose_difference(result.a_from_b, truth)
+            out.append((np.rad2deg(rotation), translation))
+        turn = mean.a_from_b[:3, :3] @ truth[:3, :3].T
+        yaw = np.arctan2(turn[1, 0], turn[0, 0])
+        free = np.r_[yaw, mean.a_from_b[:3, 3] - truth[:3, 3]]
+        d2.append(free @ np.linalg.solve(mean.covariance[2:, 2:], free))
+    rms_with = np.sqrt(np.mean(np.square(with_cov), axis=0))
+    rms_without = np.sqrt(np.mean(np.square(without), axis=0))
+    # Places 15 m apart, each placed to millimetres: the yaw between them follows.
+    assert rms_with[0] < 0.7 * rms_without[0] and rms_with[1] < 0.7 * rms_without[1]
+    assert rms_with[0] < 0.1
+    assert 1.5 < np.mean(d2) < 9.0
