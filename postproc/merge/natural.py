@@ -22,6 +22,7 @@ from postproc.merge.places import (
     KeyframeFeatures,
     LocalMap,
     PairEvidence,
+    PlaceCandidate,
     PlaceOptions,
     build_vocabulary,
     candidate_clusters,
@@ -187,24 +188,24 @@ def _match_pair(
         evidence.inliers_tried.append(inliers)
         if result is None:
             continue
+        candidate = PlaceCandidate(
+            result,
+            maps[d],
+            reference,
+            pose_a[reference.stamp_ns],
+            query,
+            pose_b[query.stamp_ns],
+            _nearby(fa, pose_a, reference, options.refine_window_s),
+            _nearby(fb, pose_b, query, options.refine_window_s),
+        )
         if options.refine_places:
-            refined = refine_place(
-                result,
-                maps[d],
-                reference,
-                pose_a[reference.stamp_ns],
-                query,
-                pose_b[query.stamp_ns],
-                _nearby(fa, pose_a, reference, options.refine_window_s),
-                _nearby(fb, pose_b, query, options.refine_window_s),
-                options,
-                focal_px=focal,
-            )
+            refined = refine_place([candidate], options, focal_px=focal)
             if refined is None:
                 continue
             result = replace(result, a_from_b=refined[0], covariance=refined[1])
+            candidate = replace(candidate, verification=result)
         evidence.verified.append((query.stamp_ns, reference.stamp_ns, result.inliers))
-        verified.append((query.stamp_ns, reference.stamp_ns, result))
+        verified.append((query.stamp_ns, reference.stamp_ns, result, candidate))
     if len(verified) < options.min_consistent:
         evidence.reason = (
             f"{len(verified)} candidate(s) passed PnP and the gravity check "
@@ -236,24 +237,72 @@ def _match_pair(
         + [options.noise_floor_translation_m**2] * 3
     )
     clusters = candidate_clusters(times_a, times_b, gap_s=options.place_gap_s)
-    pair = pair_place_mean(
-        chosen,
-        times_a,
-        times_b,
-        np.array([pose_a[v[1]][:3, 3] for v in kept]),
-        np.array([(v[2].a_from_b @ pose_b[v[0]])[:3, 3] for v in kept]),
-        rate_a=drift_rates[a.name],
-        rate_b=drift_rates[b.name],
-        clusters=clusters,
-        floor=floor,
-        start=start,
-        fixed_axes=2,
-        keyframe_noise_a=keyframe_noise[a.name],
-        keyframe_noise_b=keyframe_noise[b.name],
-        max_whitened_sq=options.max_candidate_chi2,
-        covariances=(np.array([v[2].covariance for v in kept]) if options.refine_places else None),
-    )
-    used = pair.inliers
+    if options.refine_places:
+        # The candidates of one place share keyframes, and so their SLAM errors: one
+        # adjustment of them all is the place's measurement.
+        places, members = [], []
+        for label in range(int(clusters.max()) + 1):
+            inside = np.flatnonzero(clusters == label)
+            refined = refine_place(
+                [kept[i][3] for i in inside],
+                options,
+                focal_px=focal,
+                start=weighted_pose_mean(chosen[inside], weights[group][inside]),
+            )
+            if refined is not None:
+                places.append(refined)
+                members.append(inside)
+        if not places:
+            evidence.reason = (
+                f"{len(chosen)} verified candidates agree on T_Sa_Sb but no place's "
+                "adjustment converged"
+            )
+            return evidence
+        place_poses = np.array([p[0] for p in places])
+        pair = pair_place_mean(
+            place_poses,
+            np.array([times_a[m].mean() for m in members]),
+            np.array([times_b[m].mean() for m in members]),
+            np.array([np.mean([pose_a[kept[i][1]][:3, 3] for i in m], axis=0) for m in members]),
+            np.array(
+                [
+                    np.mean([(p[0] @ pose_b[kept[i][0]])[:3, 3] for i in m], axis=0)
+                    for m, p in zip(members, places, strict=True)
+                ]
+            ),
+            rate_a=drift_rates[a.name],
+            rate_b=drift_rates[b.name],
+            clusters=np.arange(len(places)),
+            floor=floor,
+            start=start,
+            fixed_axes=2,
+            max_whitened_sq=options.max_candidate_chi2,
+            covariances=np.array([p[1] for p in places]),
+        )
+        used = np.zeros(len(kept), dtype=bool)
+        for m, keep in zip(members, pair.inliers, strict=True):
+            used[m] = keep
+        place_times_a = np.array([times_a[m].mean() for m in members])[pair.inliers]
+        place_times_b = np.array([times_b[m].mean() for m in members])[pair.inliers]
+    else:
+        pair = pair_place_mean(
+            chosen,
+            times_a,
+            times_b,
+            np.array([pose_a[v[1]][:3, 3] for v in kept]),
+            np.array([(v[2].a_from_b @ pose_b[v[0]])[:3, 3] for v in kept]),
+            rate_a=drift_rates[a.name],
+            rate_b=drift_rates[b.name],
+            clusters=clusters,
+            floor=floor,
+            start=start,
+            fixed_axes=2,
+            keyframe_noise_a=keyframe_noise[a.name],
+            keyframe_noise_b=keyframe_noise[b.name],
+            max_whitened_sq=options.max_candidate_chi2,
+        )
+        used = pair.inliers
+        place_times_a, place_times_b = times_a[used], times_b[used]
     rejected = int(np.count_nonzero(~used))
     group_stamps = evidence.consistent
     evidence.rejected = [c for c, keep in zip(group_stamps, used, strict=True) if not keep]
@@ -269,10 +318,10 @@ def _match_pair(
     covariance[:2, :] = 0.0
     covariance[:, :2] = 0.0
     covariance[0, 0] = covariance[1, 1] = tilt_variance_rad2
-    evidence.gains_a = pair.gains_a[used]
-    evidence.gains_b = pair.gains_b[used]
-    evidence.times_a_s = times_a[used]
-    evidence.times_b_s = times_b[used]
+    evidence.gains_a = pair.gains_a[pair.inliers]
+    evidence.gains_b = pair.gains_b[pair.inliers]
+    evidence.times_a_s = place_times_a
+    evidence.times_b_s = place_times_b
     evidence.mergeable = True
     evidence.reason = f"{len(chosen)} of {len(verified)} verified candidates agree" + (
         f", {rejected} of them dropped beyond their modelled errors" if rejected else ""

@@ -514,104 +514,142 @@ def relative_rotation(
     return np.asarray(rotation, dtype=np.float64)
 
 
-def _window_observations(
+@dataclass(frozen=True)
+class PlaceCandidate:
+    """A verified candidate with what its adjustment reads: the reference keyframe of
+    a with its local map and pose `T_Sa_Cr`, the query of b with its pose `T_Sb_Cq`,
+    and their neighbours `(features, T_S_C)` in each session, nearest first."""
+
+    verification: Verification
+    reference_map: LocalMap
+    reference: KeyframeFeatures
+    session_a_from_reference: FloatArray
+    query: KeyframeFeatures
+    session_b_from_query: FloatArray
+    neighbours_a: Sequence[tuple[KeyframeFeatures, FloatArray]]
+    neighbours_b: Sequence[tuple[KeyframeFeatures, FloatArray]]
+
+
+@dataclass
+class _Camera:
+    """A keyframe in the adjustment: its pose in its own session and the landmark each
+    of its features sees."""
+
+    side: str
+    session_from_cam: FloatArray
+    features: KeyframeFeatures
+    sees: dict[int, int] = field(default_factory=dict)
+
+
+def _neighbour_matches(
     descriptors: UInt8Array,
     landmarks: FloatArray,
-    landmark_ids: IntArray,
     neighbour: KeyframeFeatures,
-    session_from_cam: FloatArray,
+    a_from_cam: FloatArray,
     options: PlaceOptions,
     *,
     tolerance: float,
-) -> list[tuple[int, FloatArray]]:
-    """(landmark, ray) seen by one neighbour: its features matched to the landmarks'
-    descriptors, kept where the landmark reprojects within `tolerance` (z=1 units)."""
+) -> list[tuple[int, int]]:
+    """(landmark row, feature) pairs of one neighbour: its features matched to the
+    landmarks' descriptors, kept where the landmark (in a) reprojects within
+    `tolerance` (z=1 units) through the neighbour's pose in a."""
     matches = match_descriptors(descriptors, neighbour.descriptors, ratio=options.ratio)
     if not matches:
         return []
     index = np.array(matches)
-    rays = neighbour.normalised[index[:, 1]]
-    error = reprojection_errors(landmarks[index[:, 0]], rays, invert_pose(session_from_cam))
-    return [
-        (int(landmark_ids[i]), ray)
-        for (i, _), ray, e in zip(matches, rays, error, strict=True)
-        if e <= tolerance
-    ]
+    error = reprojection_errors(
+        landmarks[index[:, 0]], neighbour.normalised[index[:, 1]], invert_pose(a_from_cam)
+    )
+    return [(int(i), int(j)) for (i, j), e in zip(matches, error, strict=True) if e <= tolerance]
 
 
 def refine_place(
-    verification: Verification,
-    reference_map: LocalMap,
-    reference: KeyframeFeatures,
-    session_a_from_reference: FloatArray,
-    query: KeyframeFeatures,
-    session_b_from_query: FloatArray,
-    neighbours_a: Sequence[tuple[KeyframeFeatures, FloatArray]],
-    neighbours_b: Sequence[tuple[KeyframeFeatures, FloatArray]],
+    candidates: Sequence[PlaceCandidate],
     options: PlaceOptions,
     *,
     focal_px: float,
+    start: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray] | None:
-    """`T_Sa_Sb` (4, 4) of a verified candidate and its covariance (6, 6, `[δθ, δt]` in
-    Sa) from a bundle adjustment of both keyframes' neighbourhoods, or None when it
-    cannot be set up or does not converge.
+    """`T_Sa_Sb` (4, 4) and its covariance (6, 6, `[δθ, δt]` in Sa) from a bundle
+    adjustment of the keyframes around the candidates' references and queries, or None
+    when it cannot be set up, does not converge or turns far from `start`.
 
     The PnP of one query keyframe against a map triangulated from two or three SLAM
     poses carries those poses' own errors twice: the query's pose error enters
     `T_Sa_Sb` directly, and the neighbours' relative pose errors warp the map, which
     turns the PnP (0.15 deg of SLAM error per keyframe gave candidates up to 1 deg off
-    on the simulated wreck). Here the candidate's PnP inliers become landmarks seen by
-    the reference, the query and the keyframes around each (`neighbours_a` in a,
-    `neighbours_b` in b, as (features, `T_S_C`), matched to the landmarks'
-    descriptors); every camera pose is free but held to its SLAM pose with the
-    keyframe noise (`keyframe_noise_*`), b's through the unknown `T_Sa_Sb`, whose roll
-    and pitch stay at zero (both frames are gravity-aligned). The images then fix the
-    map's shape and each keyframe's pose relative to its neighbours, and the SLAM
-    error that is left is the mean over the neighbourhoods. The covariance (the
-    adjustment's marginal) keeps how one place trades yaw against translation: the
-    images fix where the filmed structure lies far better than the yaw about it.
+    on the simulated wreck). Here the candidates' PnP inliers become landmarks seen by
+    the references, the queries and the keyframes around each (matched to the
+    landmarks' descriptors; one landmark per feature of a keyframe); every camera pose
+    is free but held to its SLAM pose with the keyframe noise (`keyframe_noise_*`,
+    robustly), b's through the unknown `T_Sa_Sb`, whose roll and pitch stay at zero
+    (both frames are gravity-aligned). The images then fix the map's shape and each
+    keyframe's pose relative to its neighbours, and the SLAM error that is left is the
+    mean over the neighbourhoods. The covariance (the adjustment's marginal) keeps how
+    the place trades yaw against translation: the images fix where the filmed structure
+    lies far better than the yaw about it. Candidates of one place share keyframes and
+    so their SLAM errors: adjusted together they are one measurement, as they should be.
+
+    start: the initial `T_Sa_Sb` (its tilt dropped); None: the first candidate's.
     """
     import gtsam
 
-    landmarks = reference_map.points_session[verification.map_points]
-    if landmarks.shape[0] < options.min_inliers:
+    if not candidates:
         return None
-    ids = np.arange(landmarks.shape[0], dtype=np.int64)
+    first = candidates[0].verification.a_from_b if start is None else start
+    a_from_b = make_pose(_rot_z(_yaw(first)), first[:3, 3])
     tolerance = options.triangulation_reprojection_px / focal_px
-    a_from_b = make_pose(_rot_z(_yaw(verification.a_from_b)), verification.a_from_b[:3, 3])
-    # Cameras: (pose in its own session, session "a" or "b", [(landmark, ray)]).
-    cameras: list[tuple[FloatArray, str, list[tuple[int, FloatArray]]]] = [
-        (
-            session_a_from_reference,
-            "a",
-            list(
-                zip(
-                    ids.tolist(),
-                    reference.normalised[reference_map.feature_index[verification.map_points]],
-                    strict=True,
+    rows: dict[tuple[int, int], int] = {}
+    positions: list[FloatArray] = []
+    cameras: dict[tuple[str, int], _Camera] = {}
+
+    def camera(side: str, features: KeyframeFeatures, pose: FloatArray) -> _Camera:
+        return cameras.setdefault((side, features.stamp_ns), _Camera(side, pose, features))
+
+    for c in candidates:
+        v = c.verification
+        ids = []
+        for point in v.map_points.tolist():
+            key = (c.reference.stamp_ns, point)
+            if key not in rows:
+                rows[key] = len(positions)
+                positions.append(c.reference_map.points_session[point])
+            ids.append(rows[key])
+        here = np.array(ids, dtype=np.int64)
+        reference = camera("a", c.reference, c.session_a_from_reference)
+        query = camera("b", c.query, c.session_b_from_query)
+        for landmark, feature_r, feature_q in zip(
+            here.tolist(),
+            c.reference_map.feature_index[v.map_points].tolist(),
+            v.query_features.tolist(),
+            strict=True,
+        ):
+            reference.sees.setdefault(feature_r, landmark)
+            query.sees.setdefault(feature_q, landmark)
+        points = np.array([positions[i] for i in ids]).reshape(-1, 3)
+        for side, neighbours, descriptors in (
+            ("a", c.neighbours_a, c.reference_map.descriptors[v.map_points]),
+            ("b", c.neighbours_b, c.query.descriptors[v.query_features]),
+        ):
+            for features, session_from_cam in neighbours[: options.refine_neighbours]:
+                in_a = session_from_cam if side == "a" else a_from_b @ session_from_cam
+                seen = _neighbour_matches(
+                    descriptors, points, features, in_a, options, tolerance=tolerance
                 )
-            ),
-        ),
-        (
-            session_b_from_query,
-            "b",
-            list(zip(ids.tolist(), query.normalised[verification.query_features], strict=True)),
-        ),
-    ]
-    reference_descriptors = reference_map.descriptors[verification.map_points]
-    query_descriptors = query.descriptors[verification.query_features]
-    for side, neighbours, descriptors in (
-        ("a", neighbours_a, reference_descriptors),
-        ("b", neighbours_b, query_descriptors),
-    ):
-        for features, session_from_cam in neighbours[: options.refine_neighbours]:
-            in_a = session_from_cam if side == "a" else a_from_b @ session_from_cam
-            seen = _window_observations(
-                descriptors, landmarks, ids, features, in_a, options, tolerance=tolerance
-            )
-            if len(seen) >= options.refine_min_observations:
-                cameras.append((session_from_cam, side, seen))
-    if len(cameras) < 3:
+                if len(seen) < options.refine_min_observations:
+                    continue
+                neighbour = camera(side, features, session_from_cam)
+                for row, feature in seen:
+                    neighbour.sees.setdefault(feature, int(here[row]))
+    # A feature sees one landmark: a landmark that lost its second view to another
+    # (two maps of one place triangulate the same structure) is left out.
+    views = np.zeros(len(positions), dtype=np.int64)
+    for cam in cameras.values():
+        np.add.at(views, np.fromiter(cam.sees.values(), dtype=np.int64), 1)
+    for cam in cameras.values():
+        cam.sees = {f: lm for f, lm in cam.sees.items() if views[lm] >= 2}
+    used = np.flatnonzero(views >= 2)
+    if len(used) < options.min_inliers or len(cameras) < 3:
         return None
     X = gtsam.symbol_shorthand.X
     L = gtsam.symbol_shorthand.L
@@ -642,42 +680,45 @@ def refine_place(
         )
     )
     values.insert(T, gtsam.Pose3(a_from_b))
-    for k, (session_from_cam, side, seen) in enumerate(cameras):
-        if side == "a":
-            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(session_from_cam), pose_noise))
-            values.insert(X(k), gtsam.Pose3(session_from_cam))
+    for k, cam in enumerate(cameras.values()):
+        if cam.side == "a":
+            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(cam.session_from_cam), pose_noise))
+            values.insert(X(k), gtsam.Pose3(cam.session_from_cam))
         else:
-            graph.add(gtsam.BetweenFactorPose3(T, X(k), gtsam.Pose3(session_from_cam), pose_noise))
-            values.insert(X(k), gtsam.Pose3(a_from_b @ session_from_cam))
-        for landmark, ray in seen:
+            graph.add(
+                gtsam.BetweenFactorPose3(T, X(k), gtsam.Pose3(cam.session_from_cam), pose_noise)
+            )
+            values.insert(X(k), gtsam.Pose3(a_from_b @ cam.session_from_cam))
+        for feature, landmark in cam.sees.items():
             graph.add(
                 gtsam.GenericProjectionFactorCal3_S2(
-                    np.asarray(ray, dtype=np.float64),
+                    np.asarray(cam.features.normalised[feature], dtype=np.float64),
                     pixel_noise,
                     X(k),
                     L(landmark),
                     calibration,
                 )
             )
-    for landmark in ids.tolist():
-        values.insert(L(landmark), np.asarray(landmarks[landmark], dtype=np.float64))
+    # A weak prior (1 m) keeps a landmark whose views barely differ determinate.
+    landmark_noise = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
+    for landmark in used.tolist():
+        position = np.asarray(positions[landmark], dtype=np.float64)
+        values.insert(L(landmark), position)
+        graph.add(gtsam.PriorFactorPoint3(L(landmark), position, landmark_noise))
     parameters = gtsam.LevenbergMarquardtParams()
     parameters.setMaxIterations(30)
     try:
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, parameters).optimize()
+        body = gtsam.Marginals(graph, result).marginalCovariance(T)
     except RuntimeError:
         return None
     refined = np.asarray(result.atPose3(T).matrix(), dtype=np.float64)
-    if not np.all(np.isfinite(refined)):
+    if not np.all(np.isfinite(refined)) or not np.all(np.isfinite(body)):
         return None
     # The adjustment corrects a PnP against a map warped by its keyframes' SLAM errors
     # by a degree or two; one that turned much further went astray (a false match).
     residual = pose_residuals(refined[None], a_from_b)[0]
     if np.rad2deg(np.linalg.norm(residual[:3])) > options.refine_max_change_deg:
-        return None
-    try:
-        body = gtsam.Marginals(graph, result).marginalCovariance(T)
-    except RuntimeError:
         return None
     # GTSAM perturbs on the right (T Exp([ω, v]), body frame); `[δθ, δt]` is on the left.
     rotate = np.kron(np.eye(2), refined[:3, :3])
