@@ -34,6 +34,7 @@ from postproc.merge.places import (
     refine_place,
     verify_candidate,
     weighted_pose_mean,
+    with_tilt_prior,
 )
 from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import InputError
@@ -160,6 +161,9 @@ def _match_pair(
     focal = float(np.mean(np.diag(a.camera.intrinsic_matrix)[:2]))
     maps: dict[int, LocalMap] = {}
     verified = []
+    # The adjustments measure the pair's tilt from the images too; gravity's prior on it
+    # is added once, to the pair's mean (`with_tilt_prior`).
+    tilt = 1.0
     for q, d, score in place_candidates(
         vectors[b.name],
         vectors[a.name],
@@ -199,7 +203,7 @@ def _match_pair(
             _nearby(fb, pose_b, query, options.refine_window_s),
         )
         if options.refine_places:
-            refined = refine_place([candidate], options, focal_px=focal)
+            refined = refine_place([candidate], options, focal_px=focal, tilt_sigma_rad=tilt)
             if refined is None:
                 continue
             result = replace(result, a_from_b=refined[0], covariance=refined[1])
@@ -248,6 +252,7 @@ def _match_pair(
                 options,
                 focal_px=focal,
                 start=weighted_pose_mean(chosen[inside], weights[group][inside]),
+                tilt_sigma_rad=tilt,
             )
             if refined is not None:
                 places.append(refined)
@@ -275,7 +280,6 @@ def _match_pair(
             clusters=np.arange(len(places)),
             floor=floor,
             start=start,
-            fixed_axes=2,
             max_whitened_sq=options.max_candidate_chi2,
             covariances=np.array([p[1] for p in places]),
         )
@@ -313,11 +317,14 @@ def _match_pair(
             f"beyond their modelled errors (at least {options.min_consistent} needed)"
         )
         return evidence
-    pose, covariance = pair.a_from_b, pair.covariance.copy()
-    # Roll and pitch come from gravity, not from the images (`refine_yaw_translation`).
-    covariance[:2, :] = 0.0
-    covariance[:, :2] = 0.0
-    covariance[0, 0] = covariance[1, 1] = tilt_variance_rad2
+    if options.refine_places:
+        pose, covariance = with_tilt_prior(pair.a_from_b, pair.covariance, tilt_variance_rad2)
+    else:
+        pose, covariance = pair.a_from_b, pair.covariance.copy()
+        # Roll and pitch come from gravity, not from the images (`refine_yaw_translation`).
+        covariance[:2, :] = 0.0
+        covariance[:, :2] = 0.0
+        covariance[0, 0] = covariance[1, 1] = tilt_variance_rad2
     evidence.gains_a = pair.gains_a[pair.inliers]
     evidence.gains_b = pair.gains_b[pair.inliers]
     evidence.times_a_s = place_times_a

@@ -569,6 +569,7 @@ def refine_place(
     *,
     focal_px: float,
     start: FloatArray | None = None,
+    tilt_sigma_rad: float | None = None,
 ) -> tuple[FloatArray, FloatArray] | None:
     """`T_Sa_Sb` (4, 4) and its covariance (6, 6, `[δθ, δt]` in Sa) from a bundle
     adjustment of the keyframes around the candidates' references and queries, or None
@@ -582,15 +583,19 @@ def refine_place(
     the references, the queries and the keyframes around each (matched to the
     landmarks' descriptors; one landmark per feature of a keyframe); every camera pose
     is free but held to its SLAM pose with the keyframe noise (`keyframe_noise_*`,
-    robustly), b's through the unknown `T_Sa_Sb`, whose roll and pitch stay at zero
-    (both frames are gravity-aligned). The images then fix the map's shape and each
-    keyframe's pose relative to its neighbours, and the SLAM error that is left is the
-    mean over the neighbourhoods. The covariance (the adjustment's marginal) keeps how
-    the place trades yaw against translation: the images fix where the filmed structure
-    lies far better than the yaw about it. Candidates of one place share keyframes and
-    so their SLAM errors: adjusted together they are one measurement, as they should be.
+    robustly), b's through the unknown `T_Sa_Sb`, whose roll and pitch get a prior
+    about zero (both frames are gravity-aligned; `tilt_sigma_rad`). The images then
+    fix the map's shape and each keyframe's pose relative to its neighbours, and the
+    SLAM error that is left is the mean over the neighbourhoods. The covariance (the
+    adjustment's marginal) keeps how the place trades yaw against translation: the
+    images fix where the filmed structure lies far better than the yaw about it.
+    Candidates of one place share keyframes and so their SLAM errors: adjusted together
+    they are one measurement, as they should be.
 
     start: the initial `T_Sa_Sb` (its tilt dropped); None: the first candidate's.
+    tilt_sigma_rad: the prior on the relative roll and pitch of `T_Sa_Sb` about zero
+    (both frames gravity-aligned: the IMUs' error), estimated with the rest; None:
+    held at zero.
     """
     import gtsam
 
@@ -671,12 +676,13 @@ def refine_place(
         gtsam.noiseModel.Isotropic.Sigma(2, options.refine_pixel_sigma_px / focal_px),
     )
     calibration = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
-    # Roll and pitch of T_Sa_Sb held at zero, yaw and translation free.
+    # Roll and pitch of T_Sa_Sb about zero (gravity), yaw and translation free.
+    tilt = 1e-6 if tilt_sigma_rad is None else tilt_sigma_rad
     graph.add(
         gtsam.PriorFactorPose3(
             T,
             gtsam.Pose3(a_from_b),
-            gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-6, 1e-6, 10.0, 100.0, 100.0, 100.0])),
+            gtsam.noiseModel.Diagonal.Sigmas(np.array([tilt, tilt, 10.0, 100.0, 100.0, 100.0])),
         )
     )
     values.insert(T, gtsam.Pose3(a_from_b))
@@ -723,7 +729,27 @@ def refine_place(
     # GTSAM perturbs on the right (T Exp([ω, v]), body frame); `[δθ, δt]` is on the left.
     rotate = np.kron(np.eye(2), refined[:3, :3])
     covariance = rotate @ np.asarray(body, dtype=np.float64) @ rotate.T
-    return make_pose(_rot_z(_yaw(refined)), refined[:3, 3]), 0.5 * (covariance + covariance.T)
+    if tilt_sigma_rad is None:
+        refined = make_pose(_rot_z(_yaw(refined)), refined[:3, 3])
+    return refined, 0.5 * (covariance + covariance.T)
+
+
+def with_tilt_prior(
+    a_from_b: FloatArray, covariance: FloatArray, tilt_variance_rad2: float
+) -> tuple[FloatArray, FloatArray]:
+    """`T_Sa_Sb` and its covariance (6, 6) with gravity's prior on the relative roll and
+    pitch (zero, `tilt_variance_rad2` each) added once: the pair's mean over its places
+    measured the tilt from the images, each place without that prior (it is one piece
+    of information, not one per place). The yaw and translation follow through their
+    correlation with the tilt."""
+    tilt = tilt_vector_rad(a_from_b[:3, :3])
+    information = np.linalg.inv(covariance)
+    prior = np.zeros((6, 6))
+    prior[0, 0] = prior[1, 1] = 1.0 / tilt_variance_rad2
+    fused = np.linalg.inv(information + prior)
+    step = fused @ (prior @ np.r_[-tilt, 0.0, 0.0, 0.0, 0.0])
+    pose = make_pose(so3_exp(step[:3]) @ a_from_b[:3, :3], a_from_b[:3, 3] + step[3:])
+    return pose, 0.5 * (fused + fused.T)
 
 
 def _yaw(pose: FloatArray) -> float:

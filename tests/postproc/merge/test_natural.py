@@ -147,3 +147,40 @@ def test_refined_places_take_the_keyframes_own_errors_out(tmp_path):
         ]
         errors[refine] = float(np.sqrt(np.mean(np.square(yaws))))
     assert errors[True] < 0.6 * errors[False], errors
+
+
+def test_refined_places_measure_the_relative_tilt_gravity_left(tmp_path):
+    # b's gravity alignment is off by 0.5 deg of roll and pitch: the adjustments see it
+    # in the images where the fit with the tilt held at zero cannot.
+    tilted = WORLD_FROM["b"] @ make_pose(
+        so3_exp([np.deg2rad(0.5), np.deg2rad(-0.5), 0.0]), [0, 0, 0]
+    )
+    folders = [
+        natural_scene.write_session(
+            tmp_path / name,
+            texture_seeds=(1, 2),
+            xs_m=xs,
+            distance_m=distance,
+            world_from_session=world_from_session,
+            seed=seed,
+        )
+        for name, xs, distance, seed, world_from_session in (
+            ("a", np.linspace(-3, 3, 10), 2.0, 1, WORLD_FROM["a"]),
+            ("b", np.linspace(2, -2, 9), 2.4, 2, tilted),
+        )
+    ]
+    options = _options()
+    sessions = _load_sessions(options, folders)
+    expected = invert_pose(WORLD_FROM["a"]) @ tilted
+    errors = {}
+    for refine in (False, True):
+        [pair] = match_sessions(
+            replace(options.places, refine_places=refine),
+            sessions,
+            drift_rates={"a": np.full(6, 1e-10), "b": np.full(6, 1e-10)},
+            tilt_variance_rad2=1.0,
+        )
+        assert pair.mergeable and pair.a_from_b is not None, pair.reason
+        errors[refine] = np.rad2deg(pose_difference(pair.a_from_b, expected)[0])
+    assert errors[False] > 0.5
+    assert errors[True] < 0.2

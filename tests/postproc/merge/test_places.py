@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from postproc.merge.align import tilt_vector_rad
 from postproc.merge.averaging import pose_residuals
 from postproc.merge.places import (
     build_vocabulary,
@@ -18,6 +19,7 @@ from postproc.merge.places import (
     refine_yaw_translation,
     reprojection_errors,
     triangulate_views,
+    with_tilt_prior,
 )
 from shared.geometry import invert_pose, make_pose, pose_difference, so3_exp
 from tests.postproc.merge import natural_scene
@@ -339,3 +341,23 @@ def test_pair_place_mean_uses_each_candidates_measured_covariance():
     assert rms_with[0] < 0.7 * rms_without[0] and rms_with[1] < 0.7 * rms_without[1]
     assert rms_with[0] < 0.1
     assert 1.5 < np.mean(d2) < 9.0
+
+
+def test_with_tilt_prior_adds_gravity_once_and_moves_what_the_tilt_is_tied_to():
+    # The places measured a relative roll of 0.4 deg (1 sigma 0.2 deg), tied to the
+    # translation along y (correlation 0.8); gravity says 0 +- 0.2 deg.
+    sigma_tilt, sigma_y = np.deg2rad(0.2), 0.01
+    covariance = np.diag([sigma_tilt**2, sigma_tilt**2, np.deg2rad(0.3) ** 2, 1e-4, 1e-4, 1e-4])
+    covariance[0, 4] = covariance[4, 0] = 0.8 * sigma_tilt * sigma_y
+    measured = make_pose(so3_exp([np.deg2rad(0.4), 0.0, 0.0]) @ _rz(0.3), [1.0, 2.0, 0.0])
+    pose, fused = with_tilt_prior(measured, covariance, sigma_tilt**2)
+    roll = tilt_vector_rad(pose[:3, :3])[0]
+    # Equal variances: half-way, and half the variance.
+    assert np.rad2deg(roll) == pytest.approx(0.2, abs=1e-3)
+    assert fused[0, 0] == pytest.approx(0.5 * sigma_tilt**2, rel=1e-6)
+    # y follows the roll through their correlation: 0.8 * 1 cm per sigma of roll moved.
+    assert pose[1, 3] - 2.0 == pytest.approx(-0.8 * sigma_y * 1.0, rel=1e-3)
+    # The yaw and the other axes are untouched; pitch stays at zero.
+    assert np.arctan2(pose[1, 0], pose[0, 0]) == pytest.approx(0.3, abs=1e-5)
+    assert tilt_vector_rad(pose[:3, :3])[1] == pytest.approx(0.0, abs=1e-12)
+    assert fused[2, 2] == pytest.approx(covariance[2, 2])
