@@ -160,10 +160,11 @@ class MergeOptions:
         become optional. "auto": only when the targets cannot place every session
         (none given, or a session shares no target with the others): on the simulated
         wreck's 240 s dives, targets and features together still turn the frame
-        further than targets alone (0.112 against 0.058 deg RMS over two seeds; the
-        translation is better, 3.7 against 4.4 cm; docs/benchmarks.md, "Merge"): the
-        features' yaw is looser than their covariance claims (whitened error 1.5 RMS
-        over draws of the SLAM error, the targets' 0.7).
+        further than targets alone (0.124 against 0.060 deg RMS over four seeds; the
+        translation is better, 3.49 against 5.23 cm; on 120 s dives they are better in
+        both, 0.081 against 0.114 deg; docs/benchmarks.md, "Merge"): the targets claim
+        0.131 deg where they are 0.060 off, the features 0.114 where they are 0.147
+        off, so the joint estimate weighs them about equally.
         True: always. False: targets only, placed session by session
         (`align.place_sessions`).
     places: natural-feature settings (`places.PlaceOptions`).
