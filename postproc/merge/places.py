@@ -46,6 +46,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -420,18 +421,16 @@ def verify_candidate(
     tilt = float(np.rad2deg(np.linalg.norm(tilt_vector_rad(six_dof[:3, :3]))))
     if tilt > options.max_tilt_deg:
         return None, len(matches), len(chosen)
+
+    def verified(a_from_b: FloatArray, chosen: npt.NDArray[Any]) -> tuple[Verification, int, int]:
+        features, points = index[chosen, 0].astype(np.int64), index[chosen, 1].astype(np.int64)
+        result = Verification(a_from_b, len(chosen), len(matches), tilt, features, points)
+        return result, len(matches), len(chosen)
+
     if options.refine_places:
         # `refine_place` adjusts the query's pose with the rest: keep the 6-DoF inliers
         # (the yaw-only fit below would lose those the query's own tilt error moves).
-        verification = Verification(
-            make_pose(_rot_z(_yaw(six_dof)), six_dof[:3, 3]),
-            len(chosen),
-            len(matches),
-            tilt,
-            index[chosen, 0].astype(np.int64),
-            index[chosen, 1].astype(np.int64),
-        )
-        return verification, len(matches), len(chosen)
+        return verified(make_pose(_rot_z(_yaw(six_dof)), six_dof[:3, 3]), chosen)
     # Both session frames are gravity-aligned: refine yaw and translation only, with
     # roll and pitch from the IMUs (the image alone trades tilt against translation).
     tolerance = options.ransac_reprojection_px / focal_px
@@ -456,12 +455,7 @@ def verify_candidate(
             rotation_ab = (
                 session_a_from_reference[:3, :3] @ ref_from_query @ session_b_from_query[:3, :3].T
             )
-            yaw = float(
-                np.arctan2(
-                    rotation_ab[1, 0] - rotation_ab[0, 1], rotation_ab[0, 0] + rotation_ab[1, 1]
-                )
-            )
-            start = make_pose(_rot_z(yaw), a_from_b[:3, 3])
+            start = make_pose(_rot_z(_yaw(make_pose(rotation_ab, np.zeros(3)))), a_from_b[:3, 3])
             image_yaw = refine_yaw_translation(
                 object_points[chosen],
                 image_points[chosen],
@@ -476,15 +470,7 @@ def verify_candidate(
             # The map must still agree with the images' yaw (else the pair is suspect).
             if len(kept) >= options.min_inliers:
                 a_from_b, chosen = image_yaw, kept
-    verification = Verification(
-        a_from_b,
-        len(chosen),
-        len(matches),
-        tilt,
-        index[chosen, 0].astype(np.int64),
-        index[chosen, 1].astype(np.int64),
-    )
-    return verification, len(matches), len(chosen)
+    return verified(a_from_b, chosen)
 
 
 def relative_rotation(

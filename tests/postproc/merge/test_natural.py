@@ -110,38 +110,57 @@ def test_cli_merges_without_targets(dives, tmp_path):
     assert refused.returncode == 1 and "no target YAML" in refused.stderr
 
 
-def test_refined_places_take_the_keyframes_own_errors_out(tmp_path):
-    # Two dives of one wreck whose SLAM poses carry 0.3 deg and 1 cm of error per
-    # keyframe: a map triangulated from two of them is warped, and the query's own
-    # error enters its PnP whole. The adjustment of both neighbourhoods removes most.
-    folders = [
+def _dives(tmp_path, specs, **noise):
+    """Two sessions of one wreck (textures 1, 2): (name, xs, distance, seed, T_W_S) each."""
+    return [
         natural_scene.write_session(
             tmp_path / name,
             texture_seeds=(1, 2),
             xs_m=xs,
             distance_m=distance,
-            world_from_session=WORLD_FROM[name],
+            world_from_session=world_from_session,
             seed=seed,
-            jitter_rotation_deg=0.3,
-            jitter_translation_m=0.01,
+            **noise,
         )
-        for name, xs, distance, seed in (
-            ("a", np.linspace(-3, 3, 13), 2.0, 11),
-            ("b", np.linspace(2, -2, 11), 2.4, 12),
-        )
+        for name, xs, distance, seed, world_from_session in specs
     ]
+
+
+def _pair_refined_and_not(folders, *, tilt_variance_rad2):
+    """The a-b pair's evidence without (False) and with (True) `refine_places`."""
     options = _options()
     sessions = _load_sessions(options, folders)
-    expected = invert_pose(WORLD_FROM["a"]) @ WORLD_FROM["b"]
-    errors = {}
+    out = {}
     for refine in (False, True):
         [pair] = match_sessions(
             replace(options.places, refine_places=refine),
             sessions,
-            drift_rates={"a": np.zeros(6), "b": np.zeros(6)},
-            tilt_variance_rad2=np.deg2rad(0.1) ** 2,
+            drift_rates={"a": np.full(6, 1e-10), "b": np.full(6, 1e-10)},
+            tilt_variance_rad2=tilt_variance_rad2,
         )
-        assert pair.mergeable and pair.poses is not None, pair.reason
+        assert pair.mergeable and pair.poses is not None and pair.a_from_b is not None, pair.reason
+        out[refine] = pair
+    return out
+
+
+def test_refined_places_take_the_keyframes_own_errors_out(tmp_path):
+    # Two dives of one wreck whose SLAM poses carry 0.3 deg and 1 cm of error per
+    # keyframe: a map triangulated from two of them is warped, and the query's own
+    # error enters its PnP whole. The adjustment of both neighbourhoods removes most.
+    folders = _dives(
+        tmp_path,
+        (
+            ("a", np.linspace(-3, 3, 13), 2.0, 11, WORLD_FROM["a"]),
+            ("b", np.linspace(2, -2, 11), 2.4, 12, WORLD_FROM["b"]),
+        ),
+        jitter_rotation_deg=0.3,
+        jitter_translation_m=0.01,
+    )
+    expected = invert_pose(WORLD_FROM["a"]) @ WORLD_FROM["b"]
+    errors = {}
+    for refine, pair in _pair_refined_and_not(
+        folders, tilt_variance_rad2=np.deg2rad(0.1) ** 2
+    ).items():
         yaws = [
             np.rad2deg(np.arctan2(*(p[:3, :3] @ expected[:3, :3].T)[[1, 0], 0])) for p in pair.poses
         ]
@@ -155,32 +174,17 @@ def test_refined_places_measure_the_relative_tilt_gravity_left(tmp_path):
     tilted = WORLD_FROM["b"] @ make_pose(
         so3_exp([np.deg2rad(0.5), np.deg2rad(-0.5), 0.0]), [0, 0, 0]
     )
-    folders = [
-        natural_scene.write_session(
-            tmp_path / name,
-            texture_seeds=(1, 2),
-            xs_m=xs,
-            distance_m=distance,
-            world_from_session=world_from_session,
-            seed=seed,
-        )
-        for name, xs, distance, seed, world_from_session in (
+    folders = _dives(
+        tmp_path,
+        (
             ("a", np.linspace(-3, 3, 10), 2.0, 1, WORLD_FROM["a"]),
             ("b", np.linspace(2, -2, 9), 2.4, 2, tilted),
-        )
-    ]
-    options = _options()
-    sessions = _load_sessions(options, folders)
+        ),
+    )
     expected = invert_pose(WORLD_FROM["a"]) @ tilted
-    errors = {}
-    for refine in (False, True):
-        [pair] = match_sessions(
-            replace(options.places, refine_places=refine),
-            sessions,
-            drift_rates={"a": np.full(6, 1e-10), "b": np.full(6, 1e-10)},
-            tilt_variance_rad2=1.0,
-        )
-        assert pair.mergeable and pair.a_from_b is not None, pair.reason
-        errors[refine] = np.rad2deg(pose_difference(pair.a_from_b, expected)[0])
+    errors = {
+        refine: np.rad2deg(pose_difference(pair.a_from_b, expected)[0])
+        for refine, pair in _pair_refined_and_not(folders, tilt_variance_rad2=1.0).items()
+    }
     assert errors[False] > 0.5
     assert errors[True] < 0.2

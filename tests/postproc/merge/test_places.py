@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -96,6 +98,18 @@ def _place_candidates(rng, truth, places, per_place, *, early_drift=0.0):
             positions.append(place)
             times.append(30.0 * k)
     return np.array(poses), np.array(positions), np.array(times)
+
+
+def _without_drift(times: np.ndarray, start: np.ndarray) -> dict[str, Any]:
+    """`pair_place_mean`'s settings for sessions without drift, places 5 s apart."""
+    return dict(
+        rate_a=np.array([1e-12] * 6),
+        rate_b=np.array([1e-12] * 6),
+        clusters=candidate_clusters(times, times, gap_s=5.0),
+        floor=np.array([np.deg2rad(0.01) ** 2] * 3 + [0.002**2] * 3),
+        start=start,
+        fixed_axes=2,
+    )
 
 
 def test_pair_place_mean_keeps_the_yaw_out_of_the_translation():
@@ -223,16 +237,7 @@ def test_pair_place_mean_drops_a_candidate_beyond_its_modelled_error():
     # A wrong candidate that the consistency box keeps: 15 cm off at its camera, within
     # the 25 cm a yaw error at 10 m makes normal at Sb's origin.
     poses[7] = _pivoted(poses[7], 0.0, positions[7], np.array([0.15, -0.05, 0.0]))
-    rate = np.array([1e-12] * 3 + [1e-12] * 3)
-    floor = np.array([np.deg2rad(0.01) ** 2] * 3 + [0.002**2] * 3)
-    common = dict(
-        rate_a=rate,
-        rate_b=rate,
-        clusters=candidate_clusters(times, times, gap_s=5.0),
-        floor=floor,
-        start=poses[0],
-        fixed_axes=2,
-    )
+    common = _without_drift(times, poses[0])
     kept = pair_place_mean(poses, times, times, positions, positions, **common)
     tested = pair_place_mean(
         poses, times, times, positions, positions, max_whitened_sq=18.5, **common
@@ -291,8 +296,6 @@ def test_pair_place_mean_uses_each_candidates_measured_covariance():
     truth = make_pose(_rz(0.3), [1.0, 2.0, 0.0])
     cameras = np.array([[9.0, 8.0, -1.0], [-6.0, 9.0, 0.5], [8.0, -7.0, 0.0], [-9.0, -5.0, -0.5]])
     ahead = np.array([[0.0, 2.5, 0.0], [2.5, 0.0, 0.0], [0.0, -2.5, 0.0], [-2.5, 0.0, 0.0]])
-    rate = np.array([1e-12] * 6)
-    floor = np.array([np.deg2rad(0.01) ** 2] * 3 + [0.002**2] * 3)
     own = np.diag([1e-12, 1e-12, np.deg2rad(0.5) ** 2, 0.003**2, 0.003**2, 0.003**2])
     with_cov: list[tuple[float, float]] = []
     without: list[tuple[float, float]] = []
@@ -310,14 +313,7 @@ def test_pair_place_mean_uses_each_candidates_measured_covariance():
                 covariances.append(J @ own @ J.T)
         poses_a, positions_a = np.array(poses), np.array(positions)
         times = np.repeat(30.0 * np.arange(len(cameras)), 3)
-        common = dict(
-            rate_a=rate,
-            rate_b=rate,
-            clusters=candidate_clusters(times, times, gap_s=5.0),
-            floor=floor,
-            start=poses_a[0],
-            fixed_axes=2,
-        )
+        common = _without_drift(times, poses_a[0])
         mean = pair_place_mean(
             poses_a,
             times,
