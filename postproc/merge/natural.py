@@ -38,6 +38,7 @@ from postproc.merge.places import (
 )
 from shared.clock import ns_from_seconds, seconds_from_ns
 from shared.errors import InputError
+from shared.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +50,10 @@ def session_features(options: PlaceOptions, session: Any) -> list[KeyframeFeatur
     import cv2
 
     out = []
-    for stamp in session.keyframes.stamps_ns.tolist():
+    stamps = session.keyframes.stamps_ns.tolist()
+    for stamp in progress(
+        stamps, total=len(stamps), desc=f"merge: {session.name} features", unit="kf"
+    ):
         path = session.images.get(int(stamp))
         if path is None:
             continue
@@ -164,11 +168,14 @@ def _match_pair(
     # The adjustments measure the pair's tilt from the images too; gravity's prior on it
     # is added once, to the pair's mean (`with_tilt_prior`).
     tilt = 1.0
-    for q, d, score in place_candidates(
+    candidates = place_candidates(
         vectors[b.name],
         vectors[a.name],
         per_query=options.candidates_per_query,
         min_score=options.min_score,
+    )
+    for q, d, score in progress(
+        candidates, total=len(candidates), desc=f"merge: places {a.name}-{b.name}", unit="cand"
     ):
         query, reference = fb[q], fa[d]
         evidence.candidates.append((query.stamp_ns, reference.stamp_ns, score))
