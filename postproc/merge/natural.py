@@ -10,9 +10,12 @@ say why.
 
 from __future__ import annotations
 
+import concurrent.futures
 import logging
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
+from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
@@ -46,17 +49,12 @@ FloatArray = npt.NDArray[np.float64]
 
 
 def session_features(options: PlaceOptions, session: Any) -> list[KeyframeFeatures]:
-    """ORB features of every keyframe with an image, in keyframe order."""
+    """ORB features of every keyframe with an image, in keyframe order (read and
+    extracted over a thread pool: OpenCV releases Python's lock)."""
     import cv2
 
-    out = []
-    stamps = session.keyframes.stamps_ns.tolist()
-    for stamp in progress(
-        stamps, total=len(stamps), desc=f"merge: {session.name} features", unit="kf"
-    ):
-        path = session.images.get(int(stamp))
-        if path is None:
-            continue
+    def features(item: tuple[int, Path]) -> KeyframeFeatures:
+        stamp, path = item
         # IMREAD_GRAYSCALE always decodes to 8-bit.
         image = cast(npt.NDArray[np.uint8], cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
         if image is None:
@@ -66,8 +64,19 @@ def session_features(options: PlaceOptions, session: Any) -> list[KeyframeFeatur
         )
         rays = session.camera.unproject(pixels)[:, :2] if len(pixels) else np.zeros((0, 2))
         finite = np.all(np.isfinite(rays), axis=1)
-        out.append(KeyframeFeatures(int(stamp), pixels[finite], rays[finite], descriptors[finite]))
-    return out
+        return KeyframeFeatures(stamp, pixels[finite], rays[finite], descriptors[finite])
+
+    stamps = [int(s) for s in session.keyframes.stamps_ns.tolist()]
+    items = [(s, session.images[s]) for s in stamps if s in session.images]
+    with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        return list(
+            progress(
+                pool.map(features, items),
+                total=len(items),
+                desc=f"merge: {session.name} features",
+                unit="kf",
+            )
+        )
 
 
 def match_sessions(
@@ -163,7 +172,6 @@ def _match_pair(
     pose_a = {int(s): p for s, p in zip(a.keyframes.stamps_ns, a.keyframes.poses, strict=True)}
     pose_b = {int(s): p for s, p in zip(b.keyframes.stamps_ns, b.keyframes.poses, strict=True)}
     focal = float(np.mean(np.diag(a.camera.intrinsic_matrix)[:2]))
-    maps: dict[int, LocalMap] = {}
     verified = []
     # The adjustments measure the pair's tilt from the images too; gravity's prior on it
     # is added once, to the pair's mean (`with_tilt_prior`).
@@ -174,16 +182,27 @@ def _match_pair(
         per_query=options.candidates_per_query,
         min_score=options.min_score,
     )
+
+    def reference_map(d: int) -> LocalMap:
+        neighbours = _nearby(fa, pose_a, fa[d], options.neighbour_window_s)
+        return local_map(fa[d], pose_a[fa[d].stamp_ns], neighbours, options, focal_px=focal)
+
+    # The references' local maps over a thread pool (OpenCV's matching releases
+    # Python's lock); the candidates then in order.
+    references = sorted({d for _, d, _ in candidates})
+    with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        built = progress(
+            pool.map(reference_map, references),
+            total=len(references),
+            desc=f"merge: local maps of {a.name}",
+            unit="kf",
+        )
+        maps = dict(zip(references, built, strict=True))
     for q, d, score in progress(
         candidates, total=len(candidates), desc=f"merge: places {a.name}-{b.name}", unit="cand"
     ):
         query, reference = fb[q], fa[d]
         evidence.candidates.append((query.stamp_ns, reference.stamp_ns, score))
-        if d not in maps:
-            neighbours = _nearby(fa, pose_a, reference, options.neighbour_window_s)
-            maps[d] = local_map(
-                reference, pose_a[reference.stamp_ns], neighbours, options, focal_px=focal
-            )
         if maps[d].points_session.shape[0] < options.min_inliers:
             evidence.inliers_tried.append(0)
             continue

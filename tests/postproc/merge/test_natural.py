@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from dataclasses import replace
@@ -15,6 +16,7 @@ import pytest
 from postproc.merge.natural import match_sessions
 from postproc.merge.places import PlaceOptions
 from postproc.merge.stage import MergeOptions, _load_sessions, run
+from shared.errors import InputError
 from shared.geometry import invert_pose, make_pose, pose_difference, so3_exp
 from tests.postproc.merge import natural_scene
 
@@ -188,3 +190,14 @@ def test_refined_places_measure_the_relative_tilt_gravity_left(tmp_path):
     }
     assert errors[False] > 0.5
     assert errors[True] < 0.2
+
+
+def test_an_unreadable_keyframe_is_refused_naming_its_file(dives, tmp_path):
+    # Feature extraction runs over a thread pool: the worker's error still reaches the
+    # caller, with the file's name.
+    broken = tmp_path / "a"
+    shutil.copytree(dives["a"], broken)
+    image = sorted((broken / "keyframes").glob("*.png"))[3]
+    image.write_bytes(b"not a PNG")
+    with pytest.raises(InputError, match=f"{image.name}: cannot read the keyframe image"):
+        run(_options(), [broken, dives["b"]], [], tmp_path / "out")
