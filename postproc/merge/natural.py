@@ -46,6 +46,10 @@ from shared.progress import progress
 log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
+# The prior of the places' adjustments on the pair's relative roll and pitch: loose, so
+# that the images measure them; gravity's own prior goes once onto the pair's mean
+# (`with_tilt_prior`), not once per place.
+IMAGE_TILT_SIGMA_RAD = 1.0
 
 
 def session_features(options: PlaceOptions, session: Any) -> list[KeyframeFeatures]:
@@ -141,18 +145,20 @@ def match_sessions(
 def _nearby(
     features: Sequence[KeyframeFeatures],
     poses: Mapping[int, FloatArray],
-    keyframe: KeyframeFeatures,
+    index: int,
     window_s: float,
 ) -> list[tuple[KeyframeFeatures, FloatArray]]:
-    """(features, `T_S_C`) of the session's other keyframes within `window_s` of one,
-    nearest in time first."""
+    """(features, `T_S_C`) of the session's other keyframes within `window_s` of the one
+    at `index`, nearest in time first (`features` in keyframe order: increasing stamps)."""
+    stamp = features[index].stamp_ns
     window = ns_from_seconds(window_s)
-    out = [
-        (f, poses[f.stamp_ns])
-        for f in features
-        if f is not keyframe and abs(f.stamp_ns - keyframe.stamp_ns) <= window
-    ]
-    out.sort(key=lambda n: abs(n[0].stamp_ns - keyframe.stamp_ns))
+    lo, hi = index, index + 1
+    while lo > 0 and stamp - features[lo - 1].stamp_ns <= window:
+        lo -= 1
+    while hi < len(features) and features[hi].stamp_ns - stamp <= window:
+        hi += 1
+    out = [(f, poses[f.stamp_ns]) for f in [*features[lo:index], *features[index + 1 : hi]]]
+    out.sort(key=lambda n: abs(n[0].stamp_ns - stamp))
     return out
 
 
@@ -173,9 +179,8 @@ def _match_pair(
     pose_b = {int(s): p for s, p in zip(b.keyframes.stamps_ns, b.keyframes.poses, strict=True)}
     focal = float(np.mean(np.diag(a.camera.intrinsic_matrix)[:2]))
     verified = []
-    # The adjustments measure the pair's tilt from the images too; gravity's prior on it
-    # is added once, to the pair's mean (`with_tilt_prior`).
-    tilt = 1.0
+    # With `refine_places`: each verified candidate as its adjustment reads it.
+    prepared: list[PlaceCandidate] = []
     candidates = place_candidates(
         vectors[b.name],
         vectors[a.name],
@@ -184,7 +189,7 @@ def _match_pair(
     )
 
     def reference_map(d: int) -> LocalMap:
-        neighbours = _nearby(fa, pose_a, fa[d], options.neighbour_window_s)
+        neighbours = _nearby(fa, pose_a, d, options.neighbour_window_s)
         return local_map(fa[d], pose_a[fa[d].stamp_ns], neighbours, options, focal_px=focal)
 
     # The references' local maps over a thread pool (OpenCV's matching releases
@@ -218,24 +223,26 @@ def _match_pair(
         evidence.inliers_tried.append(inliers)
         if result is None:
             continue
-        candidate = PlaceCandidate(
-            result,
-            maps[d],
-            reference,
-            pose_a[reference.stamp_ns],
-            query,
-            pose_b[query.stamp_ns],
-            _nearby(fa, pose_a, reference, options.refine_window_s),
-            _nearby(fb, pose_b, query, options.refine_window_s),
-        )
         if options.refine_places:
-            refined = refine_place([candidate], options, focal_px=focal, tilt_sigma_rad=tilt)
+            candidate = PlaceCandidate(
+                result,
+                maps[d],
+                reference,
+                pose_a[reference.stamp_ns],
+                query,
+                pose_b[query.stamp_ns],
+                _nearby(fa, pose_a, d, options.refine_window_s),
+                _nearby(fb, pose_b, q, options.refine_window_s),
+            )
+            refined = refine_place(
+                [candidate], options, focal_px=focal, tilt_sigma_rad=IMAGE_TILT_SIGMA_RAD
+            )
             if refined is None:
                 continue
-            result = replace(result, a_from_b=refined[0], covariance=refined[1])
-            candidate = replace(candidate, verification=result)
+            result = replace(result, a_from_b=refined[0])
+            prepared.append(replace(candidate, verification=result))
         evidence.verified.append((query.stamp_ns, reference.stamp_ns, result.inliers))
-        verified.append((query.stamp_ns, reference.stamp_ns, result, candidate))
+        verified.append((query.stamp_ns, reference.stamp_ns, result))
     if len(verified) < options.min_consistent:
         evidence.reason = (
             f"{len(verified)} candidate(s) passed PnP and the gravity check "
@@ -274,11 +281,11 @@ def _match_pair(
         for label in range(int(clusters.max()) + 1):
             inside = np.flatnonzero(clusters == label)
             refined = refine_place(
-                [kept[i][3] for i in inside],
+                [prepared[i] for i in np.flatnonzero(group)[inside]],
                 options,
                 focal_px=focal,
+                tilt_sigma_rad=IMAGE_TILT_SIGMA_RAD,
                 start=weighted_pose_mean(chosen[inside], weights[group][inside]),
-                tilt_sigma_rad=tilt,
             )
             if refined is not None:
                 places.append(refined)
@@ -290,10 +297,12 @@ def _match_pair(
             )
             return evidence
         place_poses = np.array([p[0] for p in places])
+        place_times_a = np.array([times_a[m].mean() for m in members])
+        place_times_b = np.array([times_b[m].mean() for m in members])
         pair = pair_place_mean(
             place_poses,
-            np.array([times_a[m].mean() for m in members]),
-            np.array([times_b[m].mean() for m in members]),
+            place_times_a,
+            place_times_b,
             np.array([np.mean([pose_a[kept[i][1]][:3, 3] for i in m], axis=0) for m in members]),
             np.array(
                 [
@@ -312,8 +321,8 @@ def _match_pair(
         used = np.zeros(len(kept), dtype=bool)
         for m, keep in zip(members, pair.inliers, strict=True):
             used[m] = keep
-        place_times_a = np.array([times_a[m].mean() for m in members])[pair.inliers]
-        place_times_b = np.array([times_b[m].mean() for m in members])[pair.inliers]
+        place_times_a = place_times_a[pair.inliers]
+        place_times_b = place_times_b[pair.inliers]
     else:
         pair = pair_place_mean(
             chosen,

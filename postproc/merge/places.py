@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from postproc.merge.align import tilt_vector_rad
+from postproc.merge.align import tilt_vector_rad, yaw_rad
 from postproc.merge.averaging import pose_residuals
 from postproc.merge.options import PlaceOptions as PlaceOptions
 from shared.geometry import invert_pose, make_pose, rotation_angle_rad, so3_exp
@@ -359,7 +359,7 @@ class Verification:
 
     inliers: PnP inliers; matches: 2D-3D matches tried; tilt_deg: relative roll/pitch.
     query_features / map_points (inliers,): the inliers' feature in the query and point
-    of the local map. covariance: (6, 6) of `a_from_b` where measured (`refine_place`).
+    of the local map.
     """
 
     a_from_b: FloatArray
@@ -368,7 +368,6 @@ class Verification:
     tilt_deg: float
     query_features: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     map_points: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    covariance: FloatArray | None = None
 
 
 def verify_candidate(
@@ -430,7 +429,7 @@ def verify_candidate(
     if options.refine_places:
         # `refine_place` adjusts the query's pose with the rest: keep the 6-DoF inliers
         # (the yaw-only fit below would lose those the query's own tilt error moves).
-        return verified(make_pose(_rot_z(_yaw(six_dof)), six_dof[:3, 3]), chosen)
+        return verified(_without_tilt(six_dof), chosen)
     # Both session frames are gravity-aligned: refine yaw and translation only, with
     # roll and pitch from the IMUs (the image alone trades tilt against translation).
     tolerance = options.ransac_reprojection_px / focal_px
@@ -455,7 +454,7 @@ def verify_candidate(
             rotation_ab = (
                 session_a_from_reference[:3, :3] @ ref_from_query @ session_b_from_query[:3, :3].T
             )
-            start = make_pose(_rot_z(_yaw(make_pose(rotation_ab, np.zeros(3)))), a_from_b[:3, 3])
+            start = make_pose(_rot_z(yaw_rad(rotation_ab)), a_from_b[:3, 3])
             image_yaw = refine_yaw_translation(
                 object_points[chosen],
                 image_points[chosen],
@@ -554,8 +553,8 @@ def refine_place(
     options: PlaceOptions,
     *,
     focal_px: float,
+    tilt_sigma_rad: float,
     start: FloatArray | None = None,
-    tilt_sigma_rad: float | None = None,
 ) -> tuple[FloatArray, FloatArray] | None:
     """`T_Sa_Sb` (4, 4) and its covariance (6, 6, `[δθ, δt]` in Sa) from a bundle
     adjustment of the keyframes around the candidates' references and queries, or None
@@ -578,17 +577,16 @@ def refine_place(
     Candidates of one place share keyframes and so their SLAM errors: adjusted together
     they are one measurement, as they should be.
 
-    start: the initial `T_Sa_Sb` (its tilt dropped); None: the first candidate's.
     tilt_sigma_rad: the prior on the relative roll and pitch of `T_Sa_Sb` about zero
-    (both frames gravity-aligned: the IMUs' error), estimated with the rest; None:
-    held at zero.
+    (both frames gravity-aligned: the IMUs' error), estimated with the rest.
+    start: the initial `T_Sa_Sb` (its tilt dropped); None: the first candidate's.
     """
     import gtsam
 
     if not candidates:
         return None
     first = candidates[0].verification.a_from_b if start is None else start
-    a_from_b = make_pose(_rot_z(_yaw(first)), first[:3, 3])
+    a_from_b = _without_tilt(first)
     tolerance = options.triangulation_reprojection_px / focal_px
     rows: dict[tuple[int, int], int] = {}
     positions: list[FloatArray] = []
@@ -663,13 +661,9 @@ def refine_place(
     )
     calibration = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
     # Roll and pitch of T_Sa_Sb about zero (gravity), yaw and translation free.
-    tilt = 1e-6 if tilt_sigma_rad is None else tilt_sigma_rad
+    sigmas = np.array([tilt_sigma_rad, tilt_sigma_rad, 10.0, 100.0, 100.0, 100.0])
     graph.add(
-        gtsam.PriorFactorPose3(
-            T,
-            gtsam.Pose3(a_from_b),
-            gtsam.noiseModel.Diagonal.Sigmas(np.array([tilt, tilt, 10.0, 100.0, 100.0, 100.0])),
-        )
+        gtsam.PriorFactorPose3(T, gtsam.Pose3(a_from_b), gtsam.noiseModel.Diagonal.Sigmas(sigmas))
     )
     values.insert(T, gtsam.Pose3(a_from_b))
     for k, cam in enumerate(cameras.values()):
@@ -715,8 +709,6 @@ def refine_place(
     # GTSAM perturbs on the right (T Exp([ω, v]), body frame); `[δθ, δt]` is on the left.
     rotate = np.kron(np.eye(2), refined[:3, :3])
     covariance = rotate @ np.asarray(body, dtype=np.float64) @ rotate.T
-    if tilt_sigma_rad is None:
-        refined = make_pose(_rot_z(_yaw(refined)), refined[:3, 3])
     return refined, 0.5 * (covariance + covariance.T)
 
 
@@ -738,9 +730,9 @@ def with_tilt_prior(
     return pose, 0.5 * (fused + fused.T)
 
 
-def _yaw(pose: FloatArray) -> float:
-    R = pose[:3, :3]
-    return float(np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1]))
+def _without_tilt(pose: FloatArray) -> FloatArray:
+    """`pose` (4, 4) with its rotation replaced by the nearest rotation about z."""
+    return make_pose(_rot_z(yaw_rad(pose[:3, :3])), pose[:3, 3])
 
 
 def reprojection_errors(
@@ -775,9 +767,7 @@ def refine_yaw_translation(
     (its tilt is dropped). Roll and pitch of `T_Sa_Sb` are zero: both frames are
     gravity-aligned. hold_yaw: keep the start's yaw, fit the translation only.
     """
-    R = start[:3, :3]
-    yaw = float(np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1]))
-    x = np.concatenate(([yaw], start[:3, 3]))
+    x = np.concatenate(([yaw_rad(start[:3, :3])], start[:3, 3]))
 
     def residual(params: FloatArray) -> FloatArray:
         a_from_b = make_pose(_rot_z(float(params[0])), params[1:])
