@@ -11,9 +11,13 @@ lengths) and the time extrapolated to a 45-minute dive. The simulation time is p
 apart (it is not part of the chain).
 
 The shorter length is, by default, the first part of the same dive (`--prefix`, the
-default): its EuRoC copy cut at that time (images linked, not copied), so both runs see
-the same wreck, motion and haze, and no second render is needed. That run starts from
-the EuRoC folder, so its import time is 0 and import is scaled linearly (k = 1, marked
+default), so both runs see the same wreck, motion and haze, and no second render is
+needed. It is cut from the whole dive's imported session (`--prefix-source video`, the
+default: its archive up to that time, the H.264 packets copied undecoded), so both runs
+decode the same video; `--prefix-source euroc` cuts the EuRoC copy instead (PNG frames,
+linked), as this bench did up to stop 43 (PNG decoding costs another amount per image
+than H.264, so the SLAM's k then mixed two inputs). Either way that run starts from a
+recording, so its import time is 0 and import is scaled linearly (k = 1, marked
 "assumed"). `--no-prefix` simulates the second length instead.
 """
 
@@ -107,11 +111,71 @@ def make_prefix(sim: Path, out: Path, *, minutes: float) -> None:
     tmp.rename(out)
 
 
+def make_session_prefix(long_root: Path, sim: Path, out: Path, *, minutes: float) -> None:
+    """The first `minutes` of every imported session of the run at `long_root` as a
+    survey folder at `out`, each session a field session folder (`<out>/session_NN/
+    session`), so the prefix runs from the same H.264 packets as the whole dive.
+
+    Each archive's messages up to the first video packet + `minutes` are copied
+    undecoded (the video is cut after a packet: decoding starts at the archive's first
+    keyframe, as for the whole dive); its Metadata records are copied, the keyframe list
+    cut at the same time; calib/ and session.yaml are copied and metadata.yaml written
+    again. Everything else of `sim` is linked, as in `make_prefix`.
+    """
+    import shutil
+
+    from shared.archive import ArchiveReader, ArchiveWriter
+    from shared.archive.rosbag2 import write_rosbag2_metadata
+    from shared.archive.video import KEYFRAME_METADATA
+
+    if (out / "truth.json").exists():
+        return
+    tmp = out.with_name(out.name + ".tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    sessions = sorted(p for p in sim.glob("session_*") if p.is_dir())
+    for item in sim.iterdir():
+        if not item.name.startswith("session_"):
+            (tmp / item.name).symlink_to(item.resolve())
+    for k, item in enumerate(sessions):
+        source = long_root / "run" / "imports" / f"dive{k + 1}"
+        target = tmp / item.name / "session"
+        target.mkdir(parents=True)
+        for part in item.iterdir():
+            if part.name not in ("gopro", "euroc"):
+                (tmp / item.name / part.name).symlink_to(part.resolve())
+        shutil.copytree(source / "calib", target / "calib")
+        shutil.copy2(source / "session.yaml", target / "session.yaml")
+        for archive in sorted(source.glob("*.mcap")):
+            with ArchiveReader(archive) as reader:
+                video = [t for t, info in reader.topics().items() if "Video" in info.schema_name]
+                first = next(reader.raw_messages(video)).log_time_ns
+                end_ns = first + round(minutes * 60e9)
+                with ArchiveWriter(target / archive.name) as writer:
+                    for name, values in reader.metadata().items():
+                        if name == KEYFRAME_METADATA:
+                            values = {
+                                topic: ",".join(
+                                    v for v in text.split(",") if v and int(v) <= end_ns
+                                )
+                                for topic, text in values.items()
+                            }
+                        writer.add_metadata(name, values)
+                    for record in reader.raw_messages(end_ns=end_ns + 1):
+                        writer.write_cdr(record.topic, record.data, log_time_ns=record.log_time_ns)
+        write_rosbag2_metadata(target)
+    tmp.rename(out)
+
+
 def _csv_rows(path: Path) -> list[str]:
     return [r for r in path.read_text().splitlines() if r.strip()]
 
 
-def project_file(root: Path, sim: Path, *, euroc: bool) -> Path:
+def project_file(root: Path, sim: Path, *, source: str) -> Path:
+    """The project of the survey `sim` in `root`, its sessions read from `source`:
+    "gopro" (the simulator's MP4, imported), "euroc" (its PNG copy) or "session" (a
+    field session folder, as `make_session_prefix` writes)."""
     from shared.folders import SessionFolder
 
     sessions = sorted(p for p in sim.glob("session_*") if p.is_dir())
@@ -127,26 +191,26 @@ def project_file(root: Path, sim: Path, *, euroc: bool) -> Path:
         "sessions:",
     ]
     for k, session in enumerate(sessions):
-        source = (
-            f"euroc: {session / 'euroc'}"
-            if euroc
-            else f"gopro: [{session / 'gopro' / 'GX010001.MP4'}]"
-        )
-        lines += [f"  - name: dive{k + 1}", f"    {source}", f"    dive: {session / 'dive'}"]
+        where = {
+            "euroc": f"euroc: {session / 'euroc'}",
+            "session": f"session: {session / 'session'}",
+            "gopro": f"gopro: [{session / 'gopro' / 'GX010001.MP4'}]",
+        }[source]
+        lines += [f"  - name: dive{k + 1}", f"    {where}", f"    dive: {session / 'dive'}"]
     path = root / "project.yaml"
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
 
 
 def run_chain(
-    root: Path, sim: Path, *, euroc: bool
+    root: Path, sim: Path, *, source: str
 ) -> tuple[dict[str, float | str], dict[str, float]]:
     """Stage -> seconds (summed over sessions), or a status word when it did not finish;
     and stage -> peak resident memory in MiB (the largest over sessions)."""
     from postproc.pipeline.project import load_project
     from postproc.pipeline.runner import STAMP_NAME, plan, run_project
 
-    project = load_project(project_file(root, sim, euroc=euroc))
+    project = load_project(project_file(root, sim, source=source))
     result = run_project(project, echo=print)
     describe(project)
     outputs = {t.key: t.out for t in plan(project)[0]}
@@ -168,7 +232,7 @@ def run_chain(
     return per_stage, peaks
 
 
-def run_quick_look(root: Path, sim: Path, *, euroc: bool, width_px: int) -> dict[str, Any]:
+def run_quick_look(root: Path, sim: Path, *, source: str, width_px: int) -> dict[str, Any]:
     """The quick look (`wreckmap-post run --quick`) on the project of `root` (after its
     full run, so the import is already there): seconds per stage (summed over
     sessions), the page's seconds, the SLAM errors against the truth, what the page
@@ -178,7 +242,7 @@ def run_quick_look(root: Path, sim: Path, *, euroc: bool, width_px: int) -> dict
     from postproc.pipeline.quick import quick_project, quick_stages, run_quick
     from postproc.pipeline.stages import STAGES
 
-    project = load_project(project_file(root, sim, euroc=euroc))
+    project = load_project(project_file(root, sim, source=source))
     started = time.monotonic()
     result, page = run_quick(project, width_px=width_px, force=True, echo=lambda _line: None)
     total = time.monotonic() - started
@@ -319,6 +383,13 @@ def main(argv: list[str] | None = None) -> int:
         help="simulate the second length instead of cutting the first part of the dive",
     )
     parser.add_argument(
+        "--prefix-source",
+        choices=("video", "euroc"),
+        default="video",
+        help="cut the prefix from the whole dive's imported session (video, the default) "
+        "or from its EuRoC copy (PNG); with --euroc always the EuRoC copy",
+    )
+    parser.add_argument(
         "--video-crf",
         type=int,
         help="the simulator's x264 quality (default: the simulator's); the folders get a "
@@ -346,15 +417,23 @@ def main(argv: list[str] | None = None) -> int:
     long_root = args.out / f"{lengths[0]:g}min_{size}"
     for index, minutes in enumerate(lengths):
         if index == 1 and args.prefix:
-            root = args.out / f"{minutes:g}min_of_{lengths[0]:g}_{size}"
+            from_video = args.prefix_source == "video" and not args.euroc
+            source = "session" if from_video else "euroc"
+            suffix = "" if from_video else "_euroc"
+            root = args.out / f"{minutes:g}min_of_{lengths[0]:g}_{size}{suffix}"
             root.mkdir(parents=True, exist_ok=True)
-            make_prefix(long_root / "sim", root / "sim", minutes=minutes)
-            print(f"first {minutes:g} min of the {lengths[0]:g}-min dive (EuRoC, linked)")
-            times, peak = run_chain(root, root / "sim", euroc=True)
+            if from_video:
+                make_session_prefix(long_root, long_root / "sim", root / "sim", minutes=minutes)
+                what = "its imported session, the H.264 packets copied"
+            else:
+                make_prefix(long_root / "sim", root / "sim", minutes=minutes)
+                what = "EuRoC, linked"
+            print(f"first {minutes:g} min of the {lengths[0]:g}-min dive ({what})")
+            times, peak = run_chain(root, root / "sim", source=source)
             results.append(times)
             peaks.append(peak)
             if args.quick_width:
-                quick.append(run_quick_look(root, root / "sim", euroc=True,
+                quick.append(run_quick_look(root, root / "sim", source=source,
                                             width_px=args.quick_width))  # fmt: skip
             continue
         root = args.out / f"{minutes:g}min_{size}"
@@ -364,11 +443,12 @@ def main(argv: list[str] | None = None) -> int:
             f"simulated {minutes:g} min x {args.sessions} at {args.width}x{args.height}: "
             f"{sim_s:.0f} s"
         )
-        times, peak = run_chain(root, root / "sim", euroc=args.euroc)
+        source = "euroc" if args.euroc else "gopro"
+        times, peak = run_chain(root, root / "sim", source=source)
         results.append(times)
         peaks.append(peak)
         if args.quick_width:
-            quick.append(run_quick_look(root, root / "sim", euroc=args.euroc,
+            quick.append(run_quick_look(root, root / "sim", source=source,
                                         width_px=args.quick_width))  # fmt: skip
 
     video_h = lengths[0] * args.sessions / 60.0

@@ -67,6 +67,13 @@ QUICK_KEYFRAME_INTERVAL_S = 1.0
 # the window filling up as growth (k 0.95 against 1.12-1.23). 60 / 40: 115.3 s, 6.7 cm.
 QUICK_WINDOW_KEYFRAMES = 100
 QUICK_WINDOW_STEP = 50
+# And fewer features (the full run: 400 at 960 px, four times the quick look's image
+# area). bench_pipeline.py's 10-minute dive and its 3-minute prefix, both from the H.264
+# session, one run each in one sitting (quick SLAM seconds at 10 / 3 minutes, ATE at 10 /
+# 3): 400 features 117.5 / 32.7 s, 2.7 / 1.6 cm; 300: 86.6 / 23.6 s, 3.6 / 1.9 cm; 250:
+# 80.3 / 23.6 s, 3.9 / 2.0 cm. The smoother's cost grows faster than the landmarks
+# (estimator CPU 73.6 s at 400, 45.2 s at 300).
+QUICK_MAX_FEATURES = 300
 # And a global pose graph whose chain of consecutive keyframes is this many times less
 # certain than the project's (the full run: 1 cm and 0.003 rad per link). Its keyframes
 # are a second apart and tracked at half the width, so a link can be off by several
@@ -82,13 +89,15 @@ def quick_project(project: Project, *, width_px: int = QUICK_WIDTH_PX) -> Projec
     """`project` for the quick look: output in `<output>/quick`; SLAM with frontend
     images shrunk to `width_px`, at most `QUICK_RATE_HZ` images a second, a keyframe at
     least every `QUICK_KEYFRAME_INTERVAL_S`, a smoother window of at most
-    `QUICK_WINDOW_KEYFRAMES`, no final batch and no keyframe images (the page draws
-    none; never more work than the project's own settings ask), and a pose graph chain
+    `QUICK_WINDOW_KEYFRAMES`, at most `QUICK_MAX_FEATURES` tracked features, no final
+    batch and no keyframe images (the page draws none; never more work than the
+    project's own settings ask), and a pose graph chain
     `QUICK_POSE_GRAPH_SCALE` times looser than the project's."""
     stage_options = dict(project.stage_options)
     slam = copy.deepcopy(project.options_for("slam"))
     current = int(slam.frontend.width_px)
     slam.frontend.width_px = width_px if current <= 0 else min(width_px, current)
+    slam.frontend.max_features = min(slam.frontend.max_features, QUICK_MAX_FEATURES)
     rate = slam.max_rate_hz
     slam.max_rate_hz = QUICK_RATE_HZ if rate is None else min(rate, QUICK_RATE_HZ)
     keyframes = slam.estimator.keyframes
@@ -346,8 +355,9 @@ def build_quick_page(quick: Project, *, result: Any = None) -> str:
     head = [
         f"<h1>{html.escape(quick.name)}: quick look</h1>",
         f"<p class='small'>output {html.escape(str(out))}; {now}. SLAM at "
-        f"{slam.frontend.width_px} px wide, at most {slam.max_rate_hz:g} images a second, "
-        f"a keyframe at least every {slam.estimator.keyframes.max_interval_s:g} s; depth "
+        f"{slam.frontend.width_px} px wide, at most {slam.max_rate_hz:g} images a second "
+        f"and {slam.frontend.max_features} features, a keyframe at least every "
+        f"{slam.estimator.keyframes.max_interval_s:g} s; depth "
         "from the dive computer, coverage from the SLAM landmarks; no merge, SfM or mesh "
         "(the full `wreckmap-post run` gives those).</p>",
     ]

@@ -13,6 +13,7 @@ import pytest
 from postproc.pipeline.project import load_project
 from postproc.pipeline.quick import (
     QUICK_FOLDER,
+    QUICK_MAX_FEATURES,
     QUICK_POSE_GRAPH_SCALE,
     QUICK_WINDOW_KEYFRAMES,
     QUICK_WINDOW_STEP,
@@ -46,6 +47,7 @@ def test_plan_keeps_session_stages_and_shares_imports_with_the_full_run(
     assert slam.estimator.keyframes.max_interval_s == 1.0 and not slam.estimator.backend.final_batch
     assert not slam.keyframe_images  # the page draws none
     assert slam.estimator.backend.window_keyframes == QUICK_WINDOW_KEYFRAMES < 150
+    assert slam.frontend.max_features == QUICK_MAX_FEATURES < 400
     assert slam.estimator.backend.window_step_keyframes == QUICK_WINDOW_STEP < 100
     # The full project keeps its own options.
     full = project.options_for("slam")
@@ -56,6 +58,7 @@ def test_plan_keeps_session_stages_and_shares_imports_with_the_full_run(
     assert full.estimator.keyframes.max_interval_s == 0.5 and full.estimator.backend.final_batch
     assert full.keyframe_images
     assert full.estimator.backend.window_keyframes == 150
+    assert full.frontend.max_features == 400
     registry = quick_stages(project)
     assert list(registry) == ["calibrate", "import", "slam", "depth"]
     # Imports and calibration go where the full run puts them; slam and depth to quick/.
@@ -71,8 +74,10 @@ def test_never_widens_the_project_s_own_width(project_file: Path) -> None:
     project = load_project(project_file)
     project.options_for("slam").frontend.width_px = 400
     project.options_for("slam").estimator.backend.window_keyframes = 40
+    project.options_for("slam").frontend.max_features = 150
     quick = quick_project(project, width_px=480).options_for("slam")
     assert quick.frontend.width_px == 400
+    assert quick.frontend.max_features == 150
     assert quick.estimator.backend.window_keyframes == 40
     # A project that keeps every keyframe still gets the quick look's window.
     project.options_for("slam").estimator.backend.window_keyframes = 0
