@@ -134,17 +134,26 @@ def camera_to_true_ns(
     EuRoC folders of the simulator are stamped on the camera clock (true = cam + shift).
     A GoPro import is stamped on the GoPro's clock: its creation time (whole seconds, in
     the imported session.yaml) plus media time, where media time 0 is frame 0 whose true
-    exposure time is first_frame_cam_ns + shift.
+    exposure time is first_frame_cam_ns + shift. A session folder given as such (a GoPro
+    import cut by bench_pipeline.py, say) is on the GoPro's clock when its session.yaml
+    has one, else on the camera clock.
     """
-    if session.source != "gopro":
-        return shift_ns
     import yaml
 
     from postproc.pipeline.stages import RunFolders
+    from shared.folders import SessionFolder
 
-    path = RunFolders(project.output, stages).imported(session.name).session_yaml
+    if session.source == "gopro":
+        path = RunFolders(project.output, stages).imported(session.name).session_yaml
+    elif session.source == "session" and SessionFolder(session.paths[0]).session_yaml.is_file():
+        path = SessionFolder(session.paths[0]).session_yaml
+    else:
+        return shift_ns
     try:
         document = yaml.safe_load(path.read_text(encoding="utf-8"))
+        clocks = document.get("clocks") if isinstance(document, dict) else None
+        if session.source == "session" and not (isinstance(clocks, dict) and "gopro" in clocks):
+            return shift_ns  # a recorder's session: the camera clock
         creation_ns = int(document["clocks"]["gopro"]["creation_time_ns"])
     except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as error:
         raise InputError(
