@@ -59,24 +59,33 @@ def simulate(out: Path, *, minutes: float, args: argparse.Namespace) -> float:
     return time.monotonic() - started
 
 
+def _new_survey(sim: Path, out: Path) -> Path | None:
+    """A fresh `<out>.tmp` with everything of `sim` but its sessions linked (to be filled,
+    then renamed to `out`); None when `out` is already complete."""
+    import shutil
+
+    if (out / "truth.json").exists():
+        return None
+    tmp = out.with_name(out.name + ".tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    for item in sim.iterdir():
+        if not item.name.startswith("session_"):
+            (tmp / item.name).symlink_to(item.resolve())
+    return tmp
+
+
 def make_prefix(sim: Path, out: Path, *, minutes: float) -> None:
     """The first `minutes` of every session of `sim` as a survey folder at `out`.
 
     EuRoC CSVs are cut at the first camera stamp + `minutes`; images are linked; the
     GoPro file is left out (the prefix runs from EuRoC); everything else is linked.
     """
-    if (out / "truth.json").exists():
+    tmp = _new_survey(sim, out)
+    if tmp is None:
         return
-    tmp = out.with_name(out.name + ".tmp")
-    if tmp.exists():
-        import shutil
-
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    for item in sim.iterdir():
-        if not item.name.startswith("session_"):
-            (tmp / item.name).symlink_to(item.resolve())
-            continue
+    for item in sorted(p for p in sim.glob("session_*") if p.is_dir()):
         session = tmp / item.name
         session.mkdir()
         for part in item.iterdir():
@@ -128,17 +137,10 @@ def make_session_prefix(long_root: Path, sim: Path, out: Path, *, minutes: float
     from shared.archive.rosbag2 import write_rosbag2_metadata
     from shared.archive.video import KEYFRAME_METADATA
 
-    if (out / "truth.json").exists():
+    tmp = _new_survey(sim, out)
+    if tmp is None:
         return
-    tmp = out.with_name(out.name + ".tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    sessions = sorted(p for p in sim.glob("session_*") if p.is_dir())
-    for item in sim.iterdir():
-        if not item.name.startswith("session_"):
-            (tmp / item.name).symlink_to(item.resolve())
-    for k, item in enumerate(sessions):
+    for k, item in enumerate(sorted(p for p in sim.glob("session_*") if p.is_dir())):
         source = long_root / "run" / "imports" / f"dive{k + 1}"
         target = tmp / item.name / "session"
         target.mkdir(parents=True)
