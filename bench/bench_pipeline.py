@@ -125,17 +125,19 @@ def make_session_prefix(long_root: Path, sim: Path, out: Path, *, minutes: float
     survey folder at `out`, each session a field session folder (`<out>/session_NN/
     session`), so the prefix runs from the same H.264 packets as the whole dive.
 
-    Each archive's messages up to the first video packet + `minutes` are copied
-    undecoded (the video is cut after a packet: decoding starts at the archive's first
-    keyframe, as for the whole dive); its Metadata records are copied, the keyframe list
-    cut at the same time; calib/ and session.yaml are copied and metadata.yaml written
-    again. Everything else of `sim` is linked, as in `make_prefix`.
+    The session's messages up to its first video packet + `minutes` are copied
+    undecoded, archive by archive (the video is cut after a packet: decoding starts at
+    the first keyframe, as for the whole dive; an archive that starts later is left
+    out); each archive's Metadata records are copied, the keyframe list cut at the same
+    time; calib/ and session.yaml are copied and metadata.yaml written again.
+    Everything else of `sim` is linked, as in `make_prefix`.
     """
     import shutil
 
     from shared.archive import ArchiveReader, ArchiveWriter
     from shared.archive.rosbag2 import write_rosbag2_metadata
-    from shared.archive.video import KEYFRAME_METADATA
+    from shared.archive.video import KEYFRAME_METADATA, SessionVideo, session_archives
+    from shared.formats.recordings import SessionRecording
 
     tmp = _new_survey(sim, out)
     if tmp is None:
@@ -149,11 +151,13 @@ def make_session_prefix(long_root: Path, sim: Path, out: Path, *, minutes: float
                 (tmp / item.name / part.name).symlink_to(part.resolve())
         shutil.copytree(source / "calib", target / "calib")
         shutil.copy2(source / "session.yaml", target / "session.yaml")
-        for archive in sorted(source.glob("*.mcap")):
+        topic = SessionRecording(source).camera_topic
+        with SessionVideo(source, topic=topic) as video:
+            end_ns = video.time_span_ns()[0] + round(minutes * 60e9)
+        for archive in session_archives(source):
             with ArchiveReader(archive) as reader:
-                video = [t for t, info in reader.topics().items() if "Video" in info.schema_name]
-                first = next(reader.raw_messages(video)).log_time_ns
-                end_ns = first + round(minutes * 60e9)
+                if reader.time_span_ns()[0] > end_ns:
+                    continue
                 with ArchiveWriter(target / archive.name) as writer:
                     for name, values in reader.metadata().items():
                         if name == KEYFRAME_METADATA:
