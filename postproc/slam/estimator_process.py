@@ -14,7 +14,11 @@ process), fed through a pipe:
 The frontend images that keyframe descriptors are computed on (`describe`) go through a
 shared-memory ring of `slots` images: the parent copies each estimated image into slot
 `sequence % slots` before it sends the frame, and reuses a slot only once the worker has
-answered for the frame that held it. The worker reads the slot only when the frame turns
+answered for the frame that held it. A thread of the parent ("slam-estimator-feed")
+writes the frames into the pipe: a pipe holds only 64 KiB (four images' tracks), so a
+frontend writing them itself would stall whenever a keyframe keeps the worker busy
+(a quarter to one second, against 9 ms a frame for the frontend), and the two would
+take turns instead of overlapping. The worker reads the slot only when the frame turns
 out to be a keyframe. The estimator sees the same tracks, the same images and the same
 order as in-process, and the frontend gets the same biases (`publish`, the stage's
 `BiasBoard`), so the result is the same to the bit.
@@ -39,6 +43,7 @@ import logging
 import multiprocessing
 import os
 import pickle
+import queue
 import signal
 import threading
 import time
@@ -348,6 +353,10 @@ class EstimatorProcess:
             worker_outbox.close()
         self._link = threading.Thread(target=self._receive, name="slam-estimator-link")
         self._link.start()
+        # What the feed thread writes into the pipe, in order; None ends it.
+        self._outgoing: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self._feed = threading.Thread(target=self._send, name="slam-estimator-feed")
+        self._feed.start()
 
     def __enter__(self) -> EstimatorProcess:
         return self
@@ -363,16 +372,12 @@ class EstimatorProcess:
             self._frames[sequence] = frame
         if tracks is not None:
             self._ring.put(sequence, image)
-        try:
-            self._inbox.send(("frame", sequence, tracks))
-        except OSError:  # the worker is gone (BrokenPipeError): say why
-            self._link.join()
-            self._raise_failure()
-            raise
+        self._outgoing.put(("frame", sequence, tracks))
 
     def finish(self) -> SlamResult:
-        with contextlib.suppress(OSError):  # the worker is gone: the link thread knows why
-            self._inbox.send(("finish",))
+        self._outgoing.put(("finish",))
+        self._outgoing.put(None)
+        self._feed.join()
         self._link.join()
         if self._result is None:
             self._raise_failure()
@@ -386,13 +391,15 @@ class EstimatorProcess:
         if self._closed:
             return
         self._closed = True
-        self._inbox.close()  # a waiting worker reads EOF and returns
+        self._outgoing.put(None)
         if self._result is None:  # still busy (an error here, Ctrl-C): no need to wait
             self._process.terminate()
         self._process.join(timeout=10)
         if self._process.is_alive():
             self._process.kill()
             self._process.join()
+        self._feed.join()  # (a write into the dead worker's pipe fails at once)
+        self._inbox.close()
         self._link.join()
         self._outbox.close()
         self._ring.close(unlink=True)
@@ -404,6 +411,18 @@ class EstimatorProcess:
         raise StageError(
             f"the SLAM estimator process ended unexpectedly (exit code {self._process.exitcode})"
         )
+
+    def _send(self) -> None:
+        """The feed thread: the queued messages into the pipe, until None or a dead worker
+        (the link thread then sees it end, and `submit` or `finish` says why)."""
+        try:
+            while (message := self._outgoing.get()) is not None:
+                try:
+                    self._inbox.send(message)
+                except OSError:  # BrokenPipeError: the worker is gone
+                    return
+        finally:
+            self._cpu["estimator-feed"] = time.thread_time()
 
     def _receive(self) -> None:
         """The link thread: the worker's answers, until its result, error or end."""

@@ -577,16 +577,25 @@ class ImuCoverage:
         }
 
 
-PIPELINE_LAG_FRAMES = 8
+PIPELINE_LAG_FRAMES = 60
 """How far (images) the frontend may run ahead of the estimator; the gyro bias that seeds
 its tracking is the one the estimator had this many images earlier (see `BiasBoard`).
 
-At 10 fps that bias is 0.8 s old, but a gyro bias changes far too slowly for that to
-matter (a seed moves by hundredths of a pixel). What changes is which tracks survive
-the forward-backward and RANSAC thresholds, and the ATE follows that draw: on the demo's
-two 10 fps dives, lag 1 (the sequential order of before the pipeline) gave 8.0 and
-19.1 mm, lag 8 13.5 and 32.6 mm, and lag 1 with the bias moved by 1e-5 rad/s (a seed
-change of 3e-4 px) 13.2 and 26.9 mm: the same spread, not a cost of the lag."""
+The estimator's work comes in bursts: a keyframe's update takes 50-220 ms (10th to 90th
+percentile) and up to a second, against 9 ms an image for the tracker, and nothing
+between keyframes. With 8 images of slack the tracker stopped at every long update and
+the estimator waited for it after: on the 3-minute cut of bench_pipeline's 10-minute
+dive (960x540, 30 fps, estimator in a second process) the run took 83.5 s; with 30, 60,
+100 and 150 images 66.1, 65.7, 67.7 and 66.7 s (one run each; 300: 78.4 s, its
+estimator taking 55 s of CPU against 36-40). 60 images are 2 s at 30 fps, 6 s at the
+quick look's 10.
+
+A bias that old does not matter: it changes far too slowly (a seed moves by hundredths
+of a pixel). What changes is which tracks survive the forward-backward and RANSAC
+thresholds, and the ATE follows that draw: 1.5-2.2 cm over those lags on that cut. On
+the demo's two 10 fps dives, lag 1 (the sequential order of before the pipeline) gave
+8.0 and 19.1 mm, lag 8 13.5 and 32.6 mm, and lag 1 with the bias moved by 1e-5 rad/s (a
+seed change of 3e-4 px) 13.2 and 26.9 mm: the same spread, not a cost of the lag."""
 
 
 class _Failure:

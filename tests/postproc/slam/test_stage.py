@@ -381,7 +381,7 @@ def test_the_pipeline_gives_the_same_result_as_running_in_turn(
         tmp_path / "b" / "trajectory.tum"
     ).read_bytes()
     # With a lag of one image the frontend waits for the estimator after every image:
-    # the sequential order of before the pipeline (the seeds differ from lag 8's, the
+    # the sequential order of before the pipeline (the seeds differ from lag 60's, the
     # accuracy does not).
     monkeypatch.setattr(stage, "PIPELINE_LAG_FRAMES", 1)
     run(SlamOptions(), wall_euroc, tmp_path / "c")
@@ -529,6 +529,67 @@ def test_a_dead_estimator_process_is_a_stage_error(wall_euroc: Path, tmp_path: P
         patch.setattr(stage, "EstimatorProcess", Killed)
         with pytest.raises(StageError, match="estimator process ended unexpectedly"):
             run(SlamOptions(estimator_process="on"), wall_euroc, tmp_path / "slam")
+    assert not _children() and not _slam_threads()
+
+
+def test_the_frontend_runs_ahead_of_a_busy_estimator_process_past_the_pipe() -> None:
+    """A worker busy with a long keyframe must not stall the frontend while ring slots
+    are free: 60 images' tracks (about 1 MB) are far more than a pipe holds (64 KiB)."""
+    import signal
+    import threading
+
+    from postproc.slam.estimator_process import EstimatorProcess, EstimatorSetup
+    from postproc.slam.inputs import Frame
+    from postproc.slam.options import EstimatorOptions
+    from postproc.slam.types import FrameTracks
+
+    setup = EstimatorSetup(
+        options=EstimatorOptions(),
+        focal_px=400.0,
+        imu_from_cam=np.eye(4),
+        imu=None,
+        imu_noise=None,
+        image_shape=(48, 64),
+    )
+    answered: list[int] = []
+    image = np.zeros((48, 64), np.uint8)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.5, 0.5, (400, 2))
+    count = 60
+    with EstimatorProcess(
+        setup,
+        publish=lambda seq, bias: answered.append(seq),
+        on_keyframe=lambda f: None,
+        slots=count + 4,
+    ) as worker:
+        pid = worker._process.pid
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)  # the worker in a long update
+        try:
+
+            def submit_all() -> None:
+                for seq in range(count):
+                    tracks = FrameTracks(
+                        stamp_ns=seq * 33_000_000,
+                        track_ids=np.arange(400, dtype=np.int64),
+                        xy_normalised=xy,
+                        pixels=(xy + 1.0) * 30.0,
+                        image_size=(64, 48),
+                    )
+                    worker.submit(seq, Frame(seq, tracks.stamp_ns, image), tracks, image)
+
+            feeding = threading.Thread(target=submit_all)
+            feeding.start()
+            feeding.join(timeout=60)  # a hang guard: the submits take milliseconds
+            ran_ahead = not feeding.is_alive()
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        feeding.join()
+        assert ran_ahead, "the frontend waited for a stopped estimator with ring slots free"
+        assert not answered  # (nothing was estimated meanwhile)
+        with pytest.raises(StageError):  # no parallax: nothing to start from
+            worker.finish()
+    assert answered == list(range(count))  # every image, in order, once it went on
     assert not _children() and not _slam_threads()
 
 
