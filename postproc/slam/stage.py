@@ -374,7 +374,8 @@ def _build(
     # thread that takes its answers ("estimator-link"), this thread then tracking.
     thread_cpu_s: dict[str, float] = {}
     main_cpu_start = time.thread_time()
-    biases = BiasBoard(setup.initial_gyro_bias(), lag=PIPELINE_LAG_FRAMES)
+    lag = pipeline_lag_frames(calibration.camera.width, calibration.camera.height)
+    biases = BiasBoard(setup.initial_gyro_bias(), lag=lag)
     tracked = _track_frames(
         # (Images the rate cap or thinning drops are not even decoded where the recording
         # allows.)
@@ -395,7 +396,7 @@ def _build(
     stream = (
         tracked
         if in_a_process
-        else prefetch(tracked, depth=PIPELINE_LAG_FRAMES, name="slam-frontend", cpu_s=thread_cpu_s)
+        else prefetch(tracked, depth=lag, name="slam-frontend", cpu_s=thread_cpu_s)
     )
     # These threads are the parallelism: OpenCV's own worker threads on top of them
     # took 65 s of CPU time against 48 s for the same result (one pair of runs, 40 s
@@ -406,9 +407,7 @@ def _build(
     # With a second process the estimator runs beside the frontend's threads instead of
     # taking turns with them for the GIL (postproc.slam.estimator_process).
     runner: EstimatorRunner = (
-        EstimatorProcess(
-            setup, publish=biases.publish, on_keyframe=save, slots=PIPELINE_LAG_FRAMES + 4
-        )
+        EstimatorProcess(setup, publish=biases.publish, on_keyframe=save, slots=lag + 4)
         if in_a_process
         else InProcessEstimator(setup, publish=biases.publish, on_keyframe=save)
     )
@@ -596,6 +595,22 @@ thresholds, and the ATE follows that draw: 1.5-2.2 cm over those lags on that cu
 the demo's two 10 fps dives, lag 1 (the sequential order of before the pipeline) gave
 8.0 and 19.1 mm, lag 8 13.5 and 32.6 mm, and lag 1 with the bias moved by 1e-5 rad/s (a
 seed change of 3e-4 px) 13.2 and 26.9 mm: the same spread, not a cost of the lag."""
+
+PIPELINE_MEMORY_BYTES = 256 * 1024**2
+"""What the images in flight between the decoder and the estimator may take: each is
+held as recorded (BGR), to be written if it turns out a keyframe. A 960x540 image takes
+1.5 MiB, 60 of them 89 MiB; a 4K GoPro frame takes 24 MiB and a 5.3K one 45 MiB, so
+larger recordings run with a shorter lag (at least 8 images, the lag before stop 45),
+where their decoding weighs more than the estimator's bursts anyway."""
+
+
+def pipeline_lag_frames(width_px: int, height_px: int) -> int:
+    """The bias lag for recorded images of this size: `PIPELINE_LAG_FRAMES`, shortened
+    so that the images in flight (about the lag and the ring's 4 more) fit
+    `PIPELINE_MEMORY_BYTES`, to no fewer than 8 (nor more than `PIPELINE_LAG_FRAMES`)."""
+    image_bytes = max(width_px * height_px * 3, 1)
+    fits = PIPELINE_MEMORY_BYTES // image_bytes - 4
+    return min(PIPELINE_LAG_FRAMES, max(fits, 8))
 
 
 class _Failure:

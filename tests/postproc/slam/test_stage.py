@@ -369,6 +369,21 @@ def test_the_frontend_takes_the_bias_of_lag_images_before() -> None:
         BiasBoard(None, lag=0)
 
 
+def test_the_lag_shortens_for_large_images_to_bound_the_memory_in_flight() -> None:
+    from postproc.slam.stage import (
+        PIPELINE_LAG_FRAMES,
+        PIPELINE_MEMORY_BYTES,
+        pipeline_lag_frames,
+    )
+
+    assert pipeline_lag_frames(960, 540) == PIPELINE_LAG_FRAMES == 60
+    full_hd = pipeline_lag_frames(1920, 1080)
+    assert 8 < full_hd < 60
+    assert (full_hd + 4) * 1920 * 1080 * 3 <= PIPELINE_MEMORY_BYTES
+    assert pipeline_lag_frames(3840, 2160) == 8  # 4K: the floor (the lag before stop 45)
+    assert pipeline_lag_frames(5312, 2988) == 8
+
+
 def test_the_pipeline_gives_the_same_result_as_running_in_turn(
     wall_euroc: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
