@@ -576,7 +576,7 @@ class ImuCoverage:
         }
 
 
-PIPELINE_LAG_FRAMES = 60
+PIPELINE_LAG_FRAMES = 30
 """How far (images) the frontend may run ahead of the estimator; the gyro bias that seeds
 its tracking is the one the estimator had this many images earlier (see `BiasBoard`).
 
@@ -586,22 +586,25 @@ between keyframes. With 8 images of slack the tracker stopped at every long upda
 the estimator waited for it after: on the 3-minute cut of bench_pipeline's 10-minute
 dive (960x540, 30 fps, estimator in a second process) the run took 83.5 s; with 30, 60,
 100 and 150 images 66.1, 65.7, 67.7 and 66.7 s (one run each; 300: 78.4 s, its
-estimator taking 55 s of CPU against 36-40). 60 images are 2 s at 30 fps, 6 s at the
-quick look's 10.
+estimator taking 55 s of CPU against 36-40). 30, the shortest lag that gave the whole
+gain, is 1 s at 30 fps and 3 s at the quick look's 10 images a second.
 
 A bias that old does not matter: it changes far too slowly (a seed moves by hundredths
 of a pixel). What changes is which tracks survive the forward-backward and RANSAC
-thresholds, and the ATE follows that draw: 1.5-2.2 cm over those lags on that cut. On
-the demo's two 10 fps dives, lag 1 (the sequential order of before the pipeline) gave
-8.0 and 19.1 mm, lag 8 13.5 and 32.6 mm, and lag 1 with the bias moved by 1e-5 rad/s (a
-seed change of 3e-4 px) 13.2 and 26.9 mm: the same spread, not a cost of the lag."""
+thresholds, and the ATE follows that draw: 1.5-2.2 cm over those lags on that cut, and
+0.39, 0.41, 0.57, 1.07 and 0.51 % of the path on the real handheld_a for lags 8, 16, 30,
+60 and 100 (karma.mp4: 1.01, 0.95 and 0.98 % for 8, 30 and 60). On the demo's two 10 fps
+dives, lag 1 (the sequential order of before the pipeline) gave 8.0 and 19.1 mm, lag 8
+13.5 and 32.6 mm, and lag 1 with the bias moved by 1e-5 rad/s (a seed change of 3e-4 px)
+13.2 and 26.9 mm: the same spread, not a cost of the lag."""
 
 PIPELINE_MEMORY_BYTES = 256 * 1024**2
 """What the images in flight between the decoder and the estimator may take: each is
 held as recorded (BGR), to be written if it turns out a keyframe. A 960x540 image takes
-1.5 MiB, 60 of them 89 MiB; a 4K GoPro frame takes 24 MiB and a 5.3K one 45 MiB, so
-larger recordings run with a shorter lag (at least 8 images, the lag before stop 45),
-where their decoding weighs more than the estimator's bursts anyway."""
+1.5 MiB, a 1080p one 5.9 MiB (34 of them 202 MiB); a 2.7K GoPro frame takes 12 MiB, a 4K
+one 24 MiB and a 5.3K one 45 MiB, so those run with a shorter lag (17 images at 2.7K, at
+least 8, the lag before stop 45), where their decoding weighs more than the estimator's
+bursts anyway."""
 
 
 def pipeline_lag_frames(width_px: int, height_px: int) -> int:

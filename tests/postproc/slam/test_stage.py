@@ -376,10 +376,11 @@ def test_the_lag_shortens_for_large_images_to_bound_the_memory_in_flight() -> No
         pipeline_lag_frames,
     )
 
-    assert pipeline_lag_frames(960, 540) == PIPELINE_LAG_FRAMES == 60
-    full_hd = pipeline_lag_frames(1920, 1080)
-    assert 8 < full_hd < 60
-    assert (full_hd + 4) * 1920 * 1080 * 3 <= PIPELINE_MEMORY_BYTES
+    assert pipeline_lag_frames(960, 540) == PIPELINE_LAG_FRAMES == 30
+    assert pipeline_lag_frames(1920, 1080) == 30
+    two_k = pipeline_lag_frames(2704, 1520)  # GoPro 2.7K
+    assert 8 < two_k < 30
+    assert (two_k + 4) * 2704 * 1520 * 3 <= PIPELINE_MEMORY_BYTES
     assert pipeline_lag_frames(3840, 2160) == 8  # 4K: the floor (the lag before stop 45)
     assert pipeline_lag_frames(5312, 2988) == 8
 
@@ -396,7 +397,7 @@ def test_the_pipeline_gives_the_same_result_as_running_in_turn(
         tmp_path / "b" / "trajectory.tum"
     ).read_bytes()
     # With a lag of one image the frontend waits for the estimator after every image:
-    # the sequential order of before the pipeline (the seeds differ from lag 60's, the
+    # the sequential order of before the pipeline (the seeds differ from lag 30's, the
     # accuracy does not).
     monkeypatch.setattr(stage, "PIPELINE_LAG_FRAMES", 1)
     run(SlamOptions(), wall_euroc, tmp_path / "c")
