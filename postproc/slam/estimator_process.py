@@ -17,7 +17,7 @@ shared-memory ring of `slots` images: the parent copies each estimated image int
 answered for the frame that held it. A thread of the parent ("slam-estimator-feed")
 writes the frames into the pipe: a pipe holds only 64 KiB (four images' tracks), so a
 frontend writing them itself would stall whenever a keyframe keeps the worker busy
-(a quarter to one second, against 9 ms a frame for the frontend), and the two would
+(50-220 ms, up to a second, against 9 ms an image for the frontend), and the two would
 take turns instead of overlapping. The worker reads the slot only when the frame turns
 out to be a keyframe. The estimator sees the same tracks, the same images and the same
 order as in-process, and the frontend gets the same biases (`publish`, the stage's
