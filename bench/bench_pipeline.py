@@ -59,6 +59,11 @@ def simulate(out: Path, *, minutes: float, args: argparse.Namespace) -> float:
     return time.monotonic() - started
 
 
+def _sessions(sim: Path) -> list[Path]:
+    """The session folders of the survey `sim`, in order."""
+    return sorted(p for p in sim.glob("session_*") if p.is_dir())
+
+
 def _new_survey(sim: Path, out: Path) -> Path | None:
     """A fresh `<out>.tmp` with everything of `sim` but its sessions linked (to be filled,
     then renamed to `out`); None when `out` is already complete."""
@@ -85,7 +90,7 @@ def make_prefix(sim: Path, out: Path, *, minutes: float) -> None:
     tmp = _new_survey(sim, out)
     if tmp is None:
         return
-    for item in sorted(p for p in sim.glob("session_*") if p.is_dir()):
+    for item in _sessions(sim):
         session = tmp / item.name
         session.mkdir()
         for part in item.iterdir():
@@ -142,7 +147,7 @@ def make_session_prefix(long_root: Path, sim: Path, out: Path, *, minutes: float
     tmp = _new_survey(sim, out)
     if tmp is None:
         return
-    for k, item in enumerate(sorted(p for p in sim.glob("session_*") if p.is_dir())):
+    for k, item in enumerate(_sessions(sim)):
         source = long_root / "run" / "imports" / f"dive{k + 1}"
         target = tmp / item.name / "session"
         target.mkdir(parents=True)
@@ -162,10 +167,10 @@ def make_session_prefix(long_root: Path, sim: Path, out: Path, *, minutes: float
                     for name, values in reader.metadata().items():
                         if name == KEYFRAME_METADATA:
                             values = {
-                                topic: ",".join(
+                                channel: ",".join(
                                     v for v in text.split(",") if v and int(v) <= end_ns
                                 )
-                                for topic, text in values.items()
+                                for channel, text in values.items()
                             }
                         writer.add_metadata(name, values)
                     for record in reader.raw_messages(end_ns=end_ns + 1):
@@ -184,7 +189,7 @@ def project_file(root: Path, sim: Path, *, source: str) -> Path:
     field session folder, as `make_session_prefix` writes)."""
     from shared.folders import SessionFolder
 
-    sessions = sorted(p for p in sim.glob("session_*") if p.is_dir())
+    sessions = _sessions(sim)
     lines = [
         f"name: bench {sim.name}",
         "output: run",

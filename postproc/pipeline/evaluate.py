@@ -145,8 +145,10 @@ def camera_to_true_ns(
 
     if session.source == "gopro":
         path = RunFolders(project.output, stages).imported(session.name).session_yaml
-    elif session.source == "session" and SessionFolder(session.paths[0]).session_yaml.is_file():
+    elif session.source == "session":
         path = SessionFolder(session.paths[0]).session_yaml
+        if not path.is_file():
+            return shift_ns
     else:
         return shift_ns
     try:
