@@ -431,7 +431,11 @@ class SlamEstimator:
                 k.still for k in self._buffer[1:]
             ):
                 alignment = self._align(R_S_B0)
-            accepted = alignment is not None and alignment.condition >= o.init_min_condition
+            accepted = (
+                alignment is not None
+                and alignment.condition >= o.init_min_condition
+                and float(np.linalg.norm(alignment.accel_bias_m_s2)) <= o.init_max_accel_bias_m_s2
+            )
             if not accepted and not force and span_s < o.init_max_s:
                 return False
             velocity = alignment.velocity_m_s if accepted and alignment else np.zeros(3)

@@ -255,6 +255,15 @@ class EstimatorOptions:
     init_min_keyframes: keyframes buffered before the visual-inertial alignment is tried.
     init_min_parallax_deg: median ray angle to the first keyframe needed to try it.
     init_min_condition: smallest accepted conditioning of the alignment (scale observable).
+    init_max_accel_bias_m_s2: largest accelerometer bias an accepted alignment may solve
+        for. Consumer MEMS accelerometers are specified to tens of milli-g of offset
+        (0.2-0.5 m/s^2, temperature included); an alignment that needs more is explaining
+        something else with the bias (a gravity direction tilted by the start's own
+        acceleration, far scenes with little parallax) and is refused: the start waits
+        for a better one, or `init_max_s`. The Karma drone sample (accelerating at
+        2-3 m/s^2, 16 m up) gave alignments at 0.8-1.3 m/s^2 with distances from the
+        first keyframe that shrank and grew again; one at 1.18 m/s^2 (condition 0.009)
+        was accepted and the estimate diverged (10.2 m/s between keyframes).
     init_max_s: after this long without a good alignment, start from rest (v = 0): a
         hovering diver never gives scale, and waiting forever would lose the start.
     rest_window_s: length of the IMU windows that `initialization.imu_stillness`
@@ -296,6 +305,7 @@ class EstimatorOptions:
     init_min_keyframes: int = 4
     init_min_parallax_deg: float = 2.0
     init_min_condition: float = 1e-3
+    init_max_accel_bias_m_s2: float = 0.8
     init_max_s: float = 5.0
     rest_window_s: float = 0.5
     rest_max_gyro_std_rad_s: float = 0.01
