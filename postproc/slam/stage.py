@@ -203,7 +203,7 @@ def probe_rotations(
             first = frame.stamp_ns if first is None else first
             if seconds_from_ns(frame.stamp_ns - first) > probe_s:
                 break
-            tracks = frontend.track(frame.stamp_ns, frame.image)
+            tracks = frontend.track(frame.stamp_ns, _pixels(frame))
             if previous is not None:
                 _, ia, ib = np.intersect1d(
                     previous.track_ids, tracks.track_ids, return_indices=True
@@ -600,7 +600,8 @@ dives, lag 1 (the sequential order of before the pipeline) gave 8.0 and 19.1 mm,
 
 PIPELINE_MEMORY_BYTES = 256 * 1024**2
 """What the images in flight between the decoder and the estimator may take: each is
-held as recorded (BGR), to be written if it turns out a keyframe. A 960x540 image takes
+held as recorded, to be written if it turns out a keyframe (the sum below counts BGR; a
+video frame is held as its 4:2:0 planes, half that). A 960x540 image takes
 1.5 MiB, a 1080p one 5.9 MiB (34 of them 202 MiB); a 2.7K GoPro frame takes 12 MiB, a 4K
 one 24 MiB and a 5.3K one 45 MiB, so those run with a shorter lag (17 images at 2.7K, at
 least 8, the lag before stop 45), where their decoding weighs more than the estimator's
@@ -735,7 +736,14 @@ def _prepared(
     for count, frame in enumerate(frames):
         if max_frames is not None and count >= max_frames:
             break
-        yield frame, frontend.prepare(frame.image)
+        yield frame, frontend.prepare(_pixels(frame))
+
+
+def _pixels(frame: Frame) -> Image:
+    """What the frontend makes its grey image of: a video frame's luma plane where it has
+    one (no colour conversion), else the image."""
+    luma = frame.luma
+    return frame.image if luma is None else luma
 
 
 THINNING_PROBE_FRAMES = 15

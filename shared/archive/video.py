@@ -259,6 +259,19 @@ class SessionVideo:
         is false for: they are still decoded (later frames refer to them) but not
         converted to an image, the costlier part at our sizes.
         """
+        for stamp, key, frame in self.decoded(start_ns, end_ns, keep=keep):
+            yield VideoFrame(stamp_ns=stamp, image=self._image(frame), keyframe=key)
+
+    def decoded(
+        self,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        *,
+        keep: Callable[[int], bool] | None = None,
+    ) -> Iterator[tuple[int, bool, av.VideoFrame]]:
+        """As `frames`, but (stamp_ns, keyframe, PyAV frame) not yet converted (this
+        object's `scale` and `grayscale` do not apply): for a caller that converts
+        only what it needs."""
         for index, reader in enumerate(self._readers):
             first, last = self._spans[index]
             if last < first or (end_ns is not None and first >= end_ns):
@@ -273,7 +286,7 @@ class SessionVideo:
                     continue
                 if keep is not None and not keep(stamp):
                     continue
-                yield VideoFrame(stamp_ns=stamp, image=self._image(frame), keyframe=key)
+                yield stamp, key, frame
 
     def frame_at(self, stamp_ns: int) -> VideoFrame:
         """The frame on screen at `stamp_ns`: the last one with stamp <= `stamp_ns`.

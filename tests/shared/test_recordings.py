@@ -272,3 +272,33 @@ def test_a_path_that_is_no_recording_names_the_kinds(tmp_path: Path) -> None:
     (broken / "1.png").write_bytes(b"not a png")
     with pytest.raises(InputError, match=r"1\.png: cannot be read as an image"):
         list(open_recording(broken).frames())
+
+
+def test_video_frames_keep_their_planes_and_convert_as_pyav_does(tmp_path: Path) -> None:
+    import av
+
+    from shared.formats.recordings import PlanarYuv
+
+    path = _clip(tmp_path / "clip.mp4", frames=4, rate=4)
+    with av.open(str(path)) as container:
+        direct = [
+            (f.to_ndarray(format="bgr24"), f.to_ndarray(format="gray"))
+            for f in container.decode(container.streams.video[0])
+        ]
+    frames = list(open_recording(path).frames())
+    assert len(frames) == len(direct) == 4
+    for frame, (bgr, grey) in zip(frames, direct, strict=True):
+        # A limited-range (16-235) clip: the luma plane comes out stretched to 0-255,
+        # as PyAV's own grey conversion gives it, and BGR converts as PyAV does.
+        luma = frame.luma
+        assert luma is not None and luma.shape == (24, 32)
+        np.testing.assert_array_equal(luma, grey)
+        np.testing.assert_array_equal(frame.image, bgr)
+        assert frame.image is frame.image  # converted once
+    # Grey frames and stills have no planes: their image is what the frontend takes.
+    assert next(open_recording(path).frames(grayscale=True)).luma is None
+    # Odd sizes and other pixel formats are converted at once.
+    assert PlanarYuv.of(av.VideoFrame(33, 24, "yuv420p")) is None
+    assert PlanarYuv.of(av.VideoFrame(32, 24, "rgb24")) is None
+    with pytest.raises(ValueError, match="pixel format"):
+        PlanarYuv(np.zeros((36, 32), np.uint8), "nv12")
