@@ -104,6 +104,7 @@ class BackendStats:
     blind_keyframes: int = 0
     recovered_updates: int = 0
     qr_fallbacks: int = 0
+    final_batch_iterations: int = 0
     reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -749,9 +750,12 @@ class VisualInertialBackend:
                 if factor is not None:
                     cleaned.add(factor)
             params = gtsam.LevenbergMarquardtParams()
-            params.setMaxIterations(30)
+            params.setMaxIterations(self.options.final_batch_max_iterations)
+            params.setRelativeErrorTol(self.options.final_batch_relative_tolerance)
             try:
-                estimate = gtsam.LevenbergMarquardtOptimizer(cleaned, estimate, params).optimize()
+                optimizer = gtsam.LevenbergMarquardtOptimizer(cleaned, estimate, params)
+                estimate = optimizer.optimize()
+                self.stats.final_batch_iterations += int(optimizer.iterations())
             except RuntimeError as error:  # an indeterminant system: keep ISAM2's answer
                 LOG.warning("final batch refinement failed (%s); keeping the ISAM2 estimate", error)
         self._estimate = estimate

@@ -776,4 +776,5 @@ def _backend_counters(backend: VisualInertialBackend) -> dict[str, int]:
         "blind_keyframes": s.blind_keyframes,
         "recovered_updates": s.recovered_updates,
         "qr_fallbacks": s.qr_fallbacks,
+        "final_batch_iterations": s.final_batch_iterations,
     }
