@@ -10,17 +10,14 @@ of it (which crops the HERO5's 864-pixel coded width to the container's 854).
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from field.gopro.importer import ImportOptions, import_recording
 from shared.formats.recordings import open_recording
 
-REPO = Path(__file__).resolve().parents[2]
 FRAMES = 12
 
 
@@ -41,15 +38,7 @@ def test_real_clip_frames_keep_their_planes_and_convert_as_pyav_does(
                 break
     from_file = [f for _, f in zip(range(FRAMES), open_recording(clip).frames(), strict=False)]
     session = tmp_path / "session"
-    done = subprocess.run(
-        [sys.executable, "-m", "field.cli", "gopro", "import", str(clip), "--out", str(session)],
-        cwd=REPO,
-        env={**os.environ, "WRECKMAP_PROGRESS": "0"},
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert done.returncode == 0, done.stderr
+    import_recording(ImportOptions(), [clip], session)
     from_session = [
         f for _, f in zip(range(FRAMES), open_recording(session).frames(), strict=False)
     ]
