@@ -364,7 +364,8 @@ def speed(
             f"CPU {stats['cpu_time_s']:.1f} s (RTF per CPU second "
             f"{stats['real_time_factor_cpu']:.2f}), load average "
             f"{stats['load_average_1min']:.1f}, ATE {result.rmse_m * 1000:.1f} mm, "
-            f"keyframes {stats['keyframes']}"
+            f"keyframes {stats['keyframes']}, final batch "
+            f"{stats.get('final_batch_iterations', '-')} iterations"
         )
         threads = stats.get("cpu_time_threads_s") or {}
         if threads:

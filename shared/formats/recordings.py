@@ -610,7 +610,6 @@ class VideoFileRecording(_NoImu):
                 raise InputError(f"{self.path}: no video stream")
             stream = container.streams.video[0]
             first: int | None = None
-            fmt = "gray" if grayscale else "bgr24"
             chosen = keep or spaced_by(min_step_ns)
             for index, frame in enumerate(container.decode(stream)):
                 if frame.pts is None or frame.time_base is None:
@@ -620,7 +619,7 @@ class VideoFileRecording(_NoImu):
                 if not chosen(int(stamp - first)):
                     continue
                 image = (
-                    np.asarray(frame.to_ndarray(format=fmt), dtype=np.uint8)
+                    np.asarray(frame.to_ndarray(format="gray"), dtype=np.uint8)
                     if grayscale
                     else _colour(frame)
                 )
