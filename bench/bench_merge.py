@@ -4,7 +4,7 @@ the simulated wreck, and AprilGrid detection quality on the real photos.
     .venv/bin/python bench/bench_merge.py [--seeds 5] [--sessions 2] [--outliers 0.1]
     .venv/bin/python bench/bench_merge.py --scene fieldsim --seeds 8 [--cache DIR]
     .venv/bin/python bench/bench_merge.py --scene fieldsim --every-keyframe --features \
-        --seeds 8 --no-photos --cache DIR [--sfm]
+        --seeds 8 --no-photos --cache DIR [--sfm] [--draws 4]
 
 Synthetic (`sim.targets.make_survey`): two grids like the Pamir's
 (4x2 and 5x4 tags of 88 mm, 10 m apart on a tilted deck), dives filming each
@@ -79,6 +79,14 @@ refined ones (after), the same for every method:
   poses), the relative pose of the two cameras against the truth: its rotation, and
   the error of the point 2.5 m ahead of session k's camera seen from session 1's.
 
+Draws (`--draws N`, wreck with `--every-keyframe`): one rendered seed is one scene,
+and its SLAM errors one draw from the error model (`SlamErrors`), so a handful of seeds
+decides little: on the four 240 s seeds the render's own draws put the targets alone at
+0.060 deg and twelve fresh draws of the same scenes at 0.120 deg. With `--draws N`
+every seed is merged again with N - 1 fresh draws of its SLAM errors
+(`redraw_fieldsim`: the same images, targets and truth, new keyframe poses), and
+every row pools seeds x draws; the first draw is the render's own.
+
 "floor: exact at 1st sight" (wreck only): `T_S1_Sk` from targets known exactly
 at each session's first sighting. The drift before it is in every later keyframe
 and nothing observed tells it apart from the frame, so no target method beats
@@ -88,6 +96,7 @@ this row's session-frame error on average (`first_sighting_floor`).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import pickle
@@ -95,6 +104,7 @@ import shutil
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -253,7 +263,7 @@ def make_fieldsim_survey(
     import cv2
 
     from shared.calibration.kalibr import write_target_yaml
-    from shared.geometry import make_pose, so3_exp
+    from shared.geometry import so3_exp
     from sim.survey import SurveyOptions as SimOptions
     from sim.survey import SurveySimulator
 
@@ -297,27 +307,18 @@ def make_fieldsim_survey(
         c, s_ = np.cos(yaw), np.sin(yaw)
         w_from_s = make_pose(tilt @ np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]), first[:3, 3])
         world_from_session[f"dive{k + 1}"] = w_from_s
-        drift_rot = np.zeros(3)
-        drift_t = np.zeros(3)
-        axes = np.array([0.0, 0.0, 1.0]) if yaw_drift_only else np.ones(3)
+        errors = SlamErrors(rng, yaw_drift_only=yaw_drift_only, jitter=jitter, outliers=outliers)
         kept_stamps, estimates, images = [], [], []
         true_poses, drift_poses, outlier_flags, kept_index = [], [], [], []
         slam_poses = []
         previous = int(stamps[0])
         for i, stamp in enumerate(stamps):
-            dt = seconds_from_ns(int(stamp) - previous)
+            drift = errors.drift_after(seconds_from_ns(int(stamp) - previous))
             previous = int(stamp)
-            # Visual-inertial SLAM sees gravity: roll and pitch stay bounded, yaw drifts.
-            drift_rot += rng.normal(0, np.deg2rad(0.02) * np.sqrt(dt), 3) * axes
-            drift_t += rng.normal(0, 0.003 * np.sqrt(dt), 3)
-            drift = make_pose(so3_exp(drift_rot), drift_t)
             slam_poses.append(apply_slam_error(invert_pose(w_from_s) @ world_from_cam[i], drift))
             if not seen[i]:
                 continue
-            error = drift @ random_pose_error(rng, *jitter)
-            outlier = bool(rng.uniform() < outliers)
-            if outlier:
-                error = outlier_pose_error(rng, (3.0, 12.0), (0.15, 0.6))
+            error, outlier = errors.keyframe_error(drift)
             session_from_cam = invert_pose(w_from_s) @ world_from_cam[i]
             estimates.append(apply_slam_error(session_from_cam, error))
             true_poses.append(session_from_cam)
@@ -354,6 +355,101 @@ def make_fieldsim_survey(
         outlier_stamps_ns=outlier_stamps,
     )
     return folders, target_paths, truth
+
+
+class SlamErrors:
+    """The wreck scene's SLAM error model, drawn keyframe by keyframe from `rng`.
+
+    A random-walk drift from the session anchor (0.02 deg and 3 mm per sqrt(s); the
+    rotation about z only when `yaw_drift_only`, as a visual-inertial SLAM sees
+    gravity), each keyframe's own jitter (`jitter`: deg and m, 1 sigma per axis) and a
+    share `outliers` of gross errors (3-12 deg, 0.15-0.6 m).
+    """
+
+    def __init__(
+        self,
+        rng: np.random.Generator,
+        *,
+        yaw_drift_only: bool,
+        jitter: tuple[float, float],
+        outliers: float,
+    ) -> None:
+        self.rng = rng
+        self.axes = np.array([0.0, 0.0, 1.0]) if yaw_drift_only else np.ones(3)
+        self.jitter = jitter
+        self.outliers = outliers
+        self.rotation = np.zeros(3)
+        self.translation = np.zeros(3)
+
+    def drift_after(self, dt_s: float) -> FloatArray:
+        """The drift (4, 4) `dt_s` seconds after the previous keyframe's."""
+        from shared.geometry import so3_exp
+
+        self.rotation += self.rng.normal(0, np.deg2rad(0.02) * np.sqrt(dt_s), 3) * self.axes
+        self.translation += self.rng.normal(0, 0.003 * np.sqrt(dt_s), 3)
+        return make_pose(so3_exp(self.rotation), self.translation)
+
+    def keyframe_error(self, drift: FloatArray) -> tuple[FloatArray, bool]:
+        """A keyframe's whole error (4, 4) at `drift`, and whether it is an outlier."""
+        error = drift @ random_pose_error(self.rng, *self.jitter)
+        outlier = bool(self.rng.uniform() < self.outliers)
+        if outlier:
+            error = outlier_pose_error(self.rng, (3.0, 12.0), (0.15, 0.6))
+        return error, outlier
+
+
+def redraw_fieldsim(
+    root: Path,
+    dest: Path,
+    seed: int,
+    draw: int,
+    *,
+    yaw_drift_only: bool,
+    jitter: tuple[float, float],
+    outliers: float,
+) -> tuple[Path, list[Path], list[Path], SurveyTruth]:
+    """The rendered wreck survey at `root` (`make_fieldsim_survey` with `every_keyframe`)
+    with its SLAM errors drawn again (stream `(seed, draw)`), written to `dest`.
+
+    The images, targets, true poses and session frames stay; the keyframe poses, the
+    trajectory and the per-keyframe truth (drift, outliers) are new. The keyframe
+    images are linked, not copied. Returns what `make_fieldsim_survey` returns, with
+    `dest` first.
+    """
+    with (root / "bench_truth.pkl").open("rb") as f:
+        folders, targets, truth = pickle.load(f)
+    rng = np.random.default_rng((seed, draw))
+    new_folders = []
+    outlier_stamps: dict[str, list[int]] = {}
+    for folder in folders:
+        name = Path(folder).name
+        data = dict(np.load(root / f"truth_{name}.npz"))
+        stamps = data["stamps_ns"]
+        true = data["session_from_cam_true"]
+        if len(SlamFolder(folder).read_trajectory().stamps_ns) != len(stamps):
+            raise ValueError(f"{root}: redrawing needs every keyframe (--every-keyframe)")
+        errors = SlamErrors(rng, yaw_drift_only=yaw_drift_only, jitter=jitter, outliers=outliers)
+        estimates, drifts, flags = [], [], []
+        previous = int(stamps[0])
+        for stamp, session_from_cam in zip(stamps, true, strict=True):
+            drift = errors.drift_after(seconds_from_ns(int(stamp) - previous))
+            previous = int(stamp)
+            error, outlier = errors.keyframe_error(drift)
+            estimates.append(apply_slam_error(session_from_cam, error))
+            drifts.append(apply_slam_error(session_from_cam, drift))
+            flags.append(outlier)
+        out = dest / name
+        out.mkdir(parents=True)
+        slam = SlamFolder(out)
+        slam.keyframes.symlink_to(SlamFolder(folder).keyframes.resolve(), target_is_directory=True)
+        shutil.copytree(Path(folder) / "calib", out / "calib")
+        slam.write_keyframes(Trajectory(stamps, np.array(estimates)))
+        slam.write_trajectory(Trajectory(stamps, np.array(drifts)))
+        data.update(session_from_cam_drift=np.array(drifts), outlier=np.array(flags, dtype=bool))
+        np.savez(dest / f"truth_{name}.npz", **data)
+        outlier_stamps[name] = [int(t) for t, o in zip(stamps, flags, strict=True) if o]
+        new_folders.append(out)
+    return dest, new_folders, targets, replace(truth, outlier_stamps_ns=outlier_stamps)
 
 
 def at_target_references(
@@ -519,7 +615,9 @@ def memoise_features() -> None:
     memo: dict[tuple[str, str], object] = {}
 
     def features_once(options: object, session: object) -> object:
-        key = (str(session.folder), repr(options))  # type: ignore[attr-defined]
+        # By the images (redrawn SLAM errors link the rendered keyframes).
+        folder = SlamFolder(session.folder)  # type: ignore[attr-defined]
+        key = (str(folder.keyframes.resolve()), repr(options))
         if key not in memo:
             memo[key] = original(options, session)  # type: ignore[arg-type]
         return memo[key]
@@ -730,6 +828,14 @@ def main() -> int:
         help="fieldsim: and its translation error (cm, 1 sigma per axis)",
     )
     parser.add_argument(
+        "--draws",
+        type=int,
+        default=1,
+        help="fieldsim with --every-keyframe: per seed, this many draws of the SLAM errors "
+        "on the same rendered images (the first is the render's own); every row is pooled "
+        "over seeds x draws",
+    )
+    parser.add_argument(
         "--render-only", action="store_true", help="render (and cache) the seeds, then stop"
     )
     parser.add_argument(
@@ -747,6 +853,10 @@ def main() -> int:
         "each other before and after it",
     )
     args = parser.parse_args()
+    if args.draws < 1:
+        parser.error("--draws must be at least 1")
+    if args.draws > 1 and not (args.scene == "fieldsim" and args.every_keyframe):
+        parser.error("--draws needs --scene fieldsim --every-keyframe")
     if args.sfm and args.scene != "fieldsim":
         parser.error("--sfm needs --scene fieldsim (the wreck's per-keyframe truth)")
     if args.sfm:
@@ -771,15 +881,29 @@ def main() -> int:
     places: dict[tuple[str, str], list[tuple[float, float]]] = {}
     sfm_times: dict[str, list[float]] = {n: [] for n in sfm_names}
     with tempfile.TemporaryDirectory(prefix="bench_merge_") as tmp:
-        for seed in range(args.first_seed, args.first_seed + args.seeds):
+        for seed, draw in itertools.product(
+            range(args.first_seed, args.first_seed + args.seeds), range(args.draws)
+        ):
             start = time.perf_counter()
             root, folders, targets, truth = _render(args, seed, Path(tmp))
+            if draw:
+                root, folders, targets, truth = redraw_fieldsim(
+                    root,
+                    Path(tmp) / f"seed{seed}_draw{draw}",
+                    seed,
+                    draw,
+                    yaw_drift_only=not args.tilt_drift,
+                    jitter=(args.jitter_deg, args.jitter_cm / 100.0),
+                    outliers=args.outliers,
+                )
             render_s = time.perf_counter() - start
             if args.render_only:
-                print(f"seed {seed}: rendered in {render_s:.0f} s ({root})", flush=True)
+                if not draw:
+                    print(f"seed {seed}: rendered in {render_s:.0f} s ({root})", flush=True)
                 continue
             keyframes = sum(len(list(SlamFolder(f).keyframes.iterdir())) for f in folders)
-            line = f"seed {seed}: {keyframes} keyframes ready in {render_s:.0f} s;"
+            label = f"seed {seed}" + (f" draw {draw}" if args.draws > 1 else "")
+            line = f"{label}: {keyframes} keyframes ready in {render_s:.0f} s;"
             at_targets = args.scene == "fieldsim"
             references = (
                 {
@@ -826,7 +950,7 @@ def main() -> int:
                 start = time.perf_counter()
                 out = (
                     Path(tmp)
-                    / f"seed{seed}"
+                    / f"seed{seed}_{draw}"
                     / name.replace(" ", "_").replace(",", "").replace("(", "").replace(")", "")
                 )
                 given = [] if name == NO_TARGETS else targets
@@ -874,10 +998,11 @@ def main() -> int:
     if args.render_only:
         return 0
 
-    count = args.seeds * (args.sessions - 1)
+    count = args.seeds * args.draws * (args.sessions - 1)
     print()
+    draws = f" x {args.draws} draws" if args.draws > 1 else ""
     print(
-        f"session frame T_S1_Sk against the truth, RMS over {args.seeds} seeds x "
+        f"session frame T_S1_Sk against the truth, RMS over {args.seeds} seeds{draws} x "
         f"{args.sessions - 1} session(s)"
     )
     print("(trans: at the session origin; map: RMS over the session's keyframe positions)")
