@@ -158,13 +158,13 @@ class MergeOptions:
     natural_features: (ours) also match every pair of sessions through the structure
         both filmed and estimate the transforms jointly (`joint.solve_joint`); targets
         become optional. "auto": only when the targets cannot place every session
-        (none given, or a session shares no target with the others): on the simulated
-        wreck's 240 s dives, targets and features together still turn the frame
-        further than targets alone (0.124 against 0.060 deg RMS over four seeds; the
-        translation is better, 3.49 against 5.23 cm; on 120 s dives they are better in
-        both, 0.081 against 0.114 deg; docs/benchmarks.md, "Merge"): the targets claim
-        0.131 deg where they are 0.060 off, the features 0.114 where they are 0.147
-        off, so the joint estimate weighs them about equally.
+        (none given, or a session shares no target with the others). On the simulated
+        wreck's 240 s dives (four seeds x four draws of the SLAM errors) targets and
+        features together place the session frame a little better than the targets
+        alone (0.104 against 0.108 deg, 3.48 against 4.54 cm RMS) but overlay the maps
+        worse where they meet (6.83 against 6.14 cm at the shared places), take 20x the
+        time (35 against 1.7 s), and after SfM every merge gives the same maps
+        (docs/benchmarks.md, "Merge").
         True: always. False: targets only, placed session by session
         (`align.place_sessions`).
     places: natural-feature settings (`places.PlaceOptions`).
