@@ -884,6 +884,8 @@ def main() -> int:
         for seed, draw in itertools.product(
             range(args.first_seed, args.first_seed + args.seeds), range(args.draws)
         ):
+            if args.render_only and draw:
+                continue  # the draws share the seed's render
             start = time.perf_counter()
             root, folders, targets, truth = _render(args, seed, Path(tmp))
             if draw:
@@ -898,8 +900,7 @@ def main() -> int:
                 )
             render_s = time.perf_counter() - start
             if args.render_only:
-                if not draw:
-                    print(f"seed {seed}: rendered in {render_s:.0f} s ({root})", flush=True)
+                print(f"seed {seed}: rendered in {render_s:.0f} s ({root})", flush=True)
                 continue
             keyframes = sum(len(list(SlamFolder(f).keyframes.iterdir())) for f in folders)
             label = f"seed {seed}" + (f" draw {draw}" if args.draws > 1 else "")
