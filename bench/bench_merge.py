@@ -130,6 +130,7 @@ from shared.geometry import (
     pose_difference,
     rotation_angle_rad,
     rotation_mean_chordal,
+    so3_exp,
     umeyama_pose,
 )
 from shared.trajectory import Trajectory
@@ -263,7 +264,6 @@ def make_fieldsim_survey(
     import cv2
 
     from shared.calibration.kalibr import write_target_yaml
-    from shared.geometry import so3_exp
     from sim.survey import SurveyOptions as SimOptions
     from sim.survey import SurveySimulator
 
@@ -383,8 +383,6 @@ class SlamErrors:
 
     def drift_after(self, dt_s: float) -> FloatArray:
         """The drift (4, 4) `dt_s` seconds after the previous keyframe's."""
-        from shared.geometry import so3_exp
-
         self.rotation += self.rng.normal(0, np.deg2rad(0.02) * np.sqrt(dt_s), 3) * self.axes
         self.translation += self.rng.normal(0, 0.003 * np.sqrt(dt_s), 3)
         return make_pose(so3_exp(self.rotation), self.translation)
