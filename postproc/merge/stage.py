@@ -64,6 +64,7 @@ Outputs in `out_dir`:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -83,6 +84,7 @@ from postproc.merge.align import (
 from postproc.merge.averaging import (
     DriftModel,
     PoseAverage,
+    calibrate_drift_model,
     clustered_covariance,
     drift_weighted_mean,
     drift_weights,
@@ -247,7 +249,7 @@ def _build(
             sessions,
             drift_rates=rates,
             tilt_variance_rad2=tilt_variance,
-            keyframe_noise={name: model.noise for name, model in drift_models.items()},
+            keyframe_noise={name: model.scaled_noise for name, model in drift_models.items()},
         )
         joint = _solve_joint(
             options, sessions, reference, dof, tilt_prior_deg, estimates, pairs, shares, rates
@@ -300,6 +302,8 @@ def _build(
     document = _transforms_document(
         options, sessions, reference, dof, depth_fused, placements, estimates, tilt_prior_deg
     )
+    for name, model in drift_models.items():
+        document["sessions"][name]["drift_model"] = _drift_model_entry(model)
     document["natural_features"] = use_natural
     if use_natural:
         document.update(_joint_document(joint, pairs))
@@ -655,10 +659,8 @@ def _average_ours(
             )
             robust[name] = (chosen, dataclasses.replace(average, covariance=covariance), passes)
         anchor_ns = session.anchor_ns
-        model = estimate_drift_model(
-            [average.residuals[average.inliers] for _, average, _ in robust.values()],
-            [_seconds(c, anchor_ns)[average.inliers] for c, average, _ in robust.values()],
-            [passes[average.inliers] for _, average, passes in robust.values()],
+        fit = functools.partial(
+            estimate_drift_model,
             prior_rate_rotation_rad2_per_s=np.deg2rad(options.drift_rate_rotation_deg_per_sqrt_s)
             ** 2,
             prior_rate_translation_m2_per_s=options.drift_rate_translation_m_per_sqrt_s**2,
@@ -667,6 +669,21 @@ def _average_ours(
             # than its error against the truth with the yaw's prior on all three axes).
             prior_rate_tilt_rad2_per_s=0.0,
         )
+        inlier_times = [_seconds(c, anchor_ns)[a.inliers] for c, a, _ in robust.values()]
+        inlier_passes = [passes[a.inliers] for _, a, passes in robust.values()]
+        model = fit(
+            [average.residuals[average.inliers] for _, average, _ in robust.values()],
+            inlier_times,
+            inlier_passes,
+        )
+        if model.pass_pairs > 0 and options.drift_weighting:
+            model = calibrate_drift_model(
+                model,
+                inlier_times,
+                inlier_passes,
+                fit,
+                observation_variance=[_pnp_variances(c)[a.inliers] for c, a, _ in robust.values()],
+            )
         if models is not None and model.pass_pairs > 0:
             models[session.name] = model
         if model.pass_pairs == 0:
@@ -697,19 +714,20 @@ def _average_ours(
             continue
         log.info(
             "%s: keyframe noise %.3f deg, %.1f mm; drift %.4f deg, %.2f mm per sqrt(s) "
-            "(from %d pass pairs)",
+            "(from %d pass pairs); variance x %.2f (rotation), %.2f (translation) for "
+            "the model's own fit",
             session.name,
             np.rad2deg(np.sqrt(np.mean(model.noise[:3]))),
             1e3 * np.sqrt(np.mean(model.noise[3:])),
             np.rad2deg(np.sqrt(np.mean(model.drift_rate[:3]))),
             1e3 * np.sqrt(np.mean(model.drift_rate[3:])),
             model.pass_pairs,
+            np.mean(model.calibration[:3]),
+            np.mean(model.calibration[3:]),
         )
         for name, (chosen, average, _) in robust.items():
             inliers = average.inliers
-            extra = np.array(
-                [o.pnp_variance if o.pnp_variance is not None else np.zeros(6) for o in chosen]
-            )
+            extra = _pnp_variances(chosen)
             pose, covariance = drift_weighted_mean(
                 np.array([o.session_from_target for o in chosen])[inliers],
                 _seconds(chosen, anchor_ns)[inliers],
@@ -737,6 +755,11 @@ def _average_ours(
     return averages
 
 
+def _pnp_variances(chosen: Sequence[Observation]) -> FloatArray:
+    """(N, 6) each observation's PnP variance in the session frame (zeros where unknown)."""
+    return np.array([o.pnp_variance if o.pnp_variance is not None else np.zeros(6) for o in chosen])
+
+
 def _drift_rates(
     options: MergeOptions, sessions: Sequence[Session], models: dict[str, DriftModel]
 ) -> dict[str, FloatArray]:
@@ -748,7 +771,7 @@ def _drift_rates(
         [np.deg2rad(options.drift_rate_rotation_deg_per_sqrt_s) ** 2] * 3
         + [options.drift_rate_translation_m_per_sqrt_s**2] * 3
     )
-    return {s.name: models[s.name].drift_rate if s.name in models else prior for s in sessions}
+    return {s.name: models[s.name].scaled_rates if s.name in models else prior for s in sessions}
 
 
 def _solve_joint(
@@ -1074,6 +1097,18 @@ def _transforms_document(
         "tilt_prior_sigma_deg": tilt_prior_deg,
         "covariance_convention": COVARIANCE_CONVENTION,
         "sessions": entries,
+    }
+
+
+def _drift_model_entry(model: DriftModel) -> dict[str, Any]:
+    """A session's fitted drift model for transforms.json, per axis `[δθ, δt]`."""
+    return {
+        "pass_pairs": model.pass_pairs,
+        "keyframe_noise_sigma": [float(v) for v in np.sqrt(model.noise)],
+        "drift_sigma_per_sqrt_s": [float(v) for v in np.sqrt(model.drift_rate)],
+        "variance_calibration": [float(v) for v in model.calibration],
+        "units": "rad and m (per sqrt(s) for the drift); the calibration multiplies the "
+        "variances of the session's target poses for the model's own fit",
     }
 
 

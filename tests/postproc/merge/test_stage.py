@@ -388,6 +388,12 @@ def test_drift_weighting_leans_on_the_first_pass(tmp_path, caplog):
         sigmas[weighting] = entry["sigma_translation_m"]
         if weighting:
             assert "from 2 pass pairs" in caplog.text
+            # Two pairs of passes measure the rate poorly: the model says so.
+            model = entry["drift_model"]
+            assert model["pass_pairs"] == 2
+            assert min(model["variance_calibration"]) >= 1.0
+            assert min(model["variance_calibration"][3:]) > 1.2
+            assert 0.005 < np.mean(model["drift_sigma_per_sqrt_s"][3:]) < 0.02
     assert errors[True] < 0.5 * errors[False]
     assert errors[True] < 0.03
     # The covariance includes the drift of the first passes: the same size as the error.
