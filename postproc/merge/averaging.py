@@ -603,20 +603,19 @@ def calibrate_drift_model(
     and its squared error over the reported variance is then larger than 1 on average
     (two targets in three passes each, a model exactly like the data's: 1.14-1.24;
     calibrated 1.02-1.12, as the bootstrap runs at the fitted, not the true, rate;
-    `tests/postproc/merge/test_averaging.py`). `draws` times: one random walk of `model`
-    shared by the
-    session's targets plus each observation's noise, at the same times (`times_s`, per
-    target (N,) s since the anchor) and passes (`pass_ids`); `refit` (the caller's
-    `estimate_drift_model` with its priors) fits a model to their residuals, and each
-    target's drift-weighted mean with that model is compared with the truth (zero).
-    The calibration per axis is the squared error over the reported variance, as a
-    geometric mean against that of a chi-square with one degree of freedom: with one
-    or two pairs of passes a refit rate near zero now and then makes the plain mean of
-    the ratio explode (23x on a 2-pair session of `test_stage.py`, whose errors were
-    a tenth of the sigma that gave), and the geometric mean is not moved by them
-    (2.6x there, and the same as the plain mean with four pairs). Never below 1 (below
-    is sampling noise: a model fitted from the data cannot know more than the exact
-    one). observation_variance: per target (N, 6) as in
+    `tests/postproc/merge/test_averaging.py`). `draws` times: one random walk of
+    `model` shared by the session's targets plus each observation's noise, at the same
+    times (`times_s`, per target (N,) s since the anchor) and passes (`pass_ids`);
+    `refit` (the caller's `estimate_drift_model` with its priors) fits a model to their
+    residuals, and each target's drift-weighted mean with that model is compared with
+    the truth (zero). The calibration per axis is the squared error over the reported
+    variance, as a geometric mean against that of a chi-square with one degree of
+    freedom: with one or two pairs of passes a refit rate near zero now and then makes
+    the plain mean of the ratio explode (23x on a 2-pair session of `test_stage.py`,
+    whose errors were a tenth of the sigma that gave), and the geometric mean is not
+    moved by them (2.6x there, and the same as the plain mean with four pairs). Never
+    below 1 (below is sampling noise: a model fitted from the data cannot know more
+    than the exact one). observation_variance: per target (N, 6) as in
     `drift_weighted_mean`. Deterministic for a `seed`. Raises ValueError for
     mismatched lengths or no target.
     """
