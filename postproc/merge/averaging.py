@@ -584,6 +584,17 @@ def _gls_mean_and_variance(
     return solved[:, :, 1].sum(axis=1) / information, 1.0 / information
 
 
+def _thinned(times_s: FloatArray, most: int) -> npt.NDArray[np.int64]:
+    """Indices of at most `most` of `times_s`: all of them in their order when there are
+    no more, else spread evenly over their time order."""
+    n = times_s.shape[0]
+    if n <= most:
+        return np.arange(n)
+    order = np.argsort(times_s, kind="stable")
+    picks = np.unique(np.linspace(0, n - 1, max(most, 1)).round().astype(np.int64))
+    return np.asarray(order[picks], dtype=np.int64)
+
+
 def calibrate_drift_model(
     model: DriftModel,
     times_s: Sequence[FloatArray],
@@ -595,6 +606,7 @@ def calibrate_drift_model(
     observation_variance: Sequence[FloatArray] | None = None,
     draws: int = 200,
     seed: int = 0,
+    max_sightings: int = 120,
 ) -> DriftModel:
     """`model` with its `calibration`: a parametric bootstrap of the session's sightings.
 
@@ -616,8 +628,11 @@ def calibrate_drift_model(
     moved by them (2.6x there, and the same as the plain mean with four pairs). Never
     below 1 (below is sampling noise: a model fitted from the data cannot know more
     than the exact one). observation_variance: per target (N, 6) as in
-    `drift_weighted_mean`. Deterministic for a `seed`. Raises ValueError for
-    mismatched lengths or no target.
+    `drift_weighted_mean`. max_sightings: a target seen more often is thinned to this
+    many sightings, evenly in time order, for the bootstrap (each draw solves an N x N
+    system per axis: a target hovered over for minutes would otherwise cost minutes;
+    thinning inside passes leaves the pass structure, which sets the factor).
+    Deterministic for a `seed`. Raises ValueError for mismatched lengths or no target.
     """
     if not times_s or len(times_s) != len(pass_ids):
         raise ValueError("calibrate_drift_model: times and pass ids differ in length or are empty")
@@ -630,6 +645,12 @@ def calibrate_drift_model(
     if any(e.shape[0] != t.shape[0] for e, t in zip(extras, taus, strict=True)):
         raise ValueError("calibrate_drift_model: observation variances and times differ in length")
     labels = [np.asarray(p).reshape(-1) for p in pass_ids]
+    if any(label.shape[0] != t.shape[0] for label, t in zip(labels, taus, strict=True)):
+        raise ValueError("calibrate_drift_model: pass ids and times differ in length")
+    kept = [_thinned(t, max_sightings) for t in taus]
+    taus = [t[k] for t, k in zip(taus, kept, strict=True)]
+    extras = [e[k] for e, k in zip(extras, kept, strict=True)]
+    labels = [label[k] for label, k in zip(labels, kept, strict=True)]
     every = np.unique(np.concatenate(taus))
     steps = np.diff(every, prepend=0.0)
     where = [np.searchsorted(every, t) for t in taus]

@@ -381,3 +381,32 @@ def test_calibrated_drift_model_reports_an_honest_variance():
     np.testing.assert_array_equal(again.calibration, tuned.calibration)
     with pytest.raises(ValueError, match="differ in length"):
         calibrate_drift_model(model, times, ids[:1], fit)
+
+
+def test_calibration_thins_a_densely_filmed_target():
+    """A target filmed in 600 sightings is thinned for the bootstrap (each draw solves an
+    N x N system): the factor is that of the same passes filmed 60 times each."""
+    fit = functools.partial(
+        estimate_drift_model,
+        prior_rate_rotation_rad2_per_s=float(RATE[2]),
+        prior_rate_translation_m2_per_s=float(RATE[3]),
+    )
+
+    def passes(per_pass: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        times = [
+            np.concatenate([t0 + np.linspace(0.0, 8.0, per_pass) for t0 in starts])
+            for starts in ((10.0, 90.0), (40.0, 130.0))
+        ]
+        return times, [np.repeat([0, 1], per_pass)] * 2
+
+    # Two pairs of passes: the rate is poorly known, the factor above 1.
+    model = DriftModel(drift_rate=RATE, noise=NOISE, pass_pairs=2)
+    dense_times, dense_ids = passes(300)
+    dense = calibrate_drift_model(model, dense_times, dense_ids, fit, draws=60)
+    sparse_times, sparse_ids = passes(60)
+    sparse = calibrate_drift_model(model, sparse_times, sparse_ids, fit, draws=60)
+    assert np.mean(sparse.calibration[3:]) > 1.05, sparse.calibration
+    ratio = np.mean(dense.calibration[3:]) / np.mean(sparse.calibration[3:])
+    assert 0.8 < ratio < 1.25, (dense.calibration, sparse.calibration)
+    with pytest.raises(ValueError, match="pass ids and times"):
+        calibrate_drift_model(model, dense_times, [dense_ids[0][:-1], dense_ids[1]], fit)
