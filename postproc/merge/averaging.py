@@ -518,13 +518,9 @@ def drift_weights(
         if observation_variance is None
         else np.asarray(observation_variance, dtype=np.float64).reshape(n, 6)
     )
-    shared = np.minimum.outer(tau, tau)
-    out = np.zeros((n, 6))
-    for k in range(6):
-        sigma = model.drift_rate[k] * shared + np.diag(model.noise[k] + extra[:, k])
-        solved = np.linalg.solve(sigma, np.ones(n))
-        out[:, k] = solved / np.sum(solved)
-    return out
+    sigma = _gls_covariances(np.minimum.outer(tau, tau), model.drift_rate, model.noise + extra)
+    solved = np.linalg.solve(sigma, np.ones((6, n, 1)))[:, :, 0]
+    return np.asarray((solved / solved.sum(axis=1, keepdims=True)).T, dtype=np.float64)
 
 
 def drift_weighted_mean(
@@ -570,6 +566,16 @@ def drift_weighted_mean(
     return mean, np.diag(variance * model.calibration)
 
 
+def _gls_covariances(shared: FloatArray, rates: FloatArray, noise: FloatArray) -> FloatArray:
+    """Per axis the observations' covariance (6, N, N) `rates[k] min(τi, τj) +
+    diag(noise[:, k])` (`shared` (N, N) the min(τi, τj), `noise` (N, 6))."""
+    n = shared.shape[0]
+    covariances: FloatArray = (
+        rates[:, None, None] * shared[None] + noise.T[:, :, None] * np.eye(n)[None]
+    )
+    return covariances
+
+
 def _gls_mean_and_variance(
     values: FloatArray, shared: FloatArray, rates: FloatArray, noise: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
@@ -577,7 +583,7 @@ def _gls_mean_and_variance(
     observations' covariance on axis k `rates[k] min(τi, τj) + diag(noise[:, k])`
     (`shared` (N, N) the min(τi, τj), `noise` (N, 6))."""
     n = values.shape[0]
-    sigma = rates[:, None, None] * shared[None] + noise.T[:, :, None] * np.eye(n)[None]
+    sigma = _gls_covariances(shared, rates, noise)
     rhs = np.stack((np.ones((6, n)), values.T), axis=2)
     solved = np.linalg.solve(sigma, rhs)
     information = solved[:, :, 0].sum(axis=1)

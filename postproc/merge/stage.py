@@ -671,6 +671,7 @@ def _average_ours(
         )
         inlier_times = [_seconds(c, anchor_ns)[a.inliers] for c, a, _ in robust.values()]
         inlier_passes = [passes[a.inliers] for _, a, passes in robust.values()]
+        inlier_pnp = [_pnp_variances(c)[a.inliers] for c, a, _ in robust.values()]
         model = fit(
             [average.residuals[average.inliers] for _, average, _ in robust.values()],
             inlier_times,
@@ -682,7 +683,7 @@ def _average_ours(
                 inlier_times,
                 inlier_passes,
                 fit,
-                observation_variance=[_pnp_variances(c)[a.inliers] for c, a, _ in robust.values()],
+                observation_variance=inlier_pnp,
             )
         if models is not None and model.pass_pairs > 0:
             models[session.name] = model
@@ -725,32 +726,27 @@ def _average_ours(
             np.mean(model.calibration[:3]),
             np.mean(model.calibration[3:]),
         )
-        for name, (chosen, average, _) in robust.items():
-            inliers = average.inliers
-            extra = _pnp_variances(chosen)
+        for (name, (chosen, average, _)), times, pnp in zip(
+            robust.items(), inlier_times, inlier_pnp, strict=True
+        ):
+            poses = np.array([o.session_from_target for o in chosen])
             pose, covariance = drift_weighted_mean(
-                np.array([o.session_from_target for o in chosen])[inliers],
-                _seconds(chosen, anchor_ns)[inliers],
+                poses[average.inliers],
+                times,
                 model,
                 start=average.pose,
-                observation_variance=extra[inliers],
+                observation_variance=pnp,
             )
             if shares is not None:
-                weights = drift_weights(
-                    _seconds(chosen, anchor_ns)[inliers],
-                    model,
-                    observation_variance=extra[inliers],
-                )
+                weights = drift_weights(times, model, observation_variance=pnp)
                 shares[session.name, name] = DriftShare(
-                    session.name,
-                    _seconds(chosen, anchor_ns)[inliers],
-                    weights[:, :, None] * np.eye(6)[None],
+                    session.name, times, weights[:, :, None] * np.eye(6)[None]
                 )
             averages[session.name][name] = dataclasses.replace(
                 average,
                 pose=pose,
                 covariance=covariance,
-                residuals=pose_residuals(np.array([o.session_from_target for o in chosen]), pose),
+                residuals=pose_residuals(poses, pose),
             )
     return averages
 
