@@ -566,6 +566,95 @@ def drift_weighted_mean(
     return mean, np.diag(variance * model.calibration)
 
 
+def drift_inliers(
+    poses: npt.ArrayLike,
+    times_s: npt.ArrayLike,
+    model: DriftModel,
+    *,
+    start: npt.ArrayLike,
+    inliers: npt.ArrayLike,
+    observation_variance: npt.ArrayLike | None = None,
+    chi2_probability: float = 0.999,
+) -> BoolArray:
+    """Which of the pose observations (N, 4, 4) of one target the drift model explains.
+
+    A robust mean's outlier rule measures each observation against one mean, so in a
+    drifting session it cuts the passes furthest from it (the walk's tails) along with
+    the gross errors; the drift model fitted from what is left then has too small a
+    rate. Here each observation is predicted from the current `inliers` (N,) by the
+    model (per axis the covariance `q min(τi, τj) + s_i δ_ij` with an unknown mean, as
+    in `drift_weighted_mean`): an inlier from the others (leave one out), any other one
+    from all of them. Its squared residual over the prediction's variance, summed over
+    the six axes, beyond the chi-square quantile of `chi2_probability` (6 degrees of
+    freedom) marks it an outlier. A sighting in a drifted pass is predicted from its
+    own pass's neighbours and stays; a gross error does not. start: (4, 4) the
+    linearisation point (the robust mean). times_s, observation_variance: as in
+    `drift_weighted_mean`. Returns the new inliers (N,); with fewer than two inliers
+    given, `inliers` unchanged. Raises ValueError for malformed input.
+    """
+    T = _as_poses(poses, "drift_inliers")
+    n = T.shape[0]
+    tau = np.maximum(np.asarray(times_s, dtype=np.float64).reshape(-1), 0.0)
+    kept = np.asarray(inliers, dtype=bool).reshape(-1)
+    if tau.shape != (n,) or kept.shape != (n,):
+        raise ValueError(f"drift_inliers: expected ({n},) times and inliers")
+    if chi2_probability not in _CHI2_6DOF:
+        raise ValueError(
+            f"drift_inliers: chi2_probability must be one of {sorted(_CHI2_6DOF)}, "
+            f"got {chi2_probability}"
+        )
+    if np.count_nonzero(kept) < 2:
+        return kept.copy()
+    extra = (
+        np.zeros((n, 6))
+        if observation_variance is None
+        else np.asarray(observation_variance, dtype=np.float64).reshape(n, 6)
+    )
+    d2 = _prediction_distances(pose_residuals(T, start), tau, kept, model, extra)
+    result: BoolArray = d2 <= _CHI2_6DOF[chi2_probability]
+    return result
+
+
+def _prediction_distances(
+    values: FloatArray, tau: FloatArray, kept: BoolArray, model: DriftModel, extra: FloatArray
+) -> FloatArray:
+    """Per observation (N,) the squared residual (`values` (N, 6)) about its prediction
+    from the `kept` ones over the prediction's variance, summed over the axes
+    (`drift_inliers`)."""
+    n = values.shape[0]
+    shared = np.minimum.outer(tau, tau)
+    inside = np.flatnonzero(kept)
+    outside = np.flatnonzero(~kept)
+    # Per axis: K over the inliers, its inverse, and the inverse projected off the mean
+    # (P = K⁻¹ - K⁻¹ 1 1ᵀ K⁻¹ / 1ᵀ K⁻¹ 1): leave-one-out residuals are (P y)_i / P_ii
+    # with variance 1 / P_ii.
+    sigma = _gls_covariances(
+        shared[np.ix_(inside, inside)], model.drift_rate, model.noise + extra[inside]
+    )
+    inverse = np.linalg.inv(sigma)
+    row = inverse.sum(axis=2)
+    information = row.sum(axis=1)
+    projected = inverse - row[:, :, None] * row[:, None, :] / information[:, None, None]
+    y = values[inside].T
+    leave_one_out = np.einsum("kij,kj->ki", projected, y)
+    diagonal = np.diagonal(projected, axis1=1, axis2=2)
+    d2 = np.zeros(n)
+    d2[inside] = np.sum(leave_one_out**2 / diagonal, axis=0)
+    if outside.size:
+        # Universal kriging of the others from the inliers: the GLS mean plus the walk's
+        # pull toward the inliers, with the mean's own variance in the prediction's.
+        mean = np.einsum("ki,ki->k", row, y) / information
+        cross = model.drift_rate[:, None, None] * shared[np.ix_(outside, inside)][None]
+        gain = np.einsum("koi,kij->koj", cross, inverse)
+        predicted = mean[:, None] + np.einsum("koj,kj->ko", gain, y - mean[:, None])
+        own = model.drift_rate[:, None] * tau[outside][None] + (model.noise + extra[outside]).T
+        explained = np.einsum("koj,koj->ko", gain, cross)
+        unexplained = 1.0 - gain.sum(axis=2)
+        variance = own - explained + unexplained**2 / information[:, None]
+        d2[outside] = np.sum((values[outside].T - predicted) ** 2 / variance, axis=0)
+    return d2
+
+
 def _gls_covariances(shared: FloatArray, rates: FloatArray, noise: FloatArray) -> FloatArray:
     """Per axis the observations' covariance (6, N, N) `rates[k] min(τi, τj) +
     diag(noise[:, k])` (`shared` (N, N) the min(τi, τj), `noise` (N, 6))."""

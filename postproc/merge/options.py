@@ -139,6 +139,11 @@ class MergeOptions:
         targets); where the drift is measured, each target's covariance then grows
         by how far its local map frame drifts from the session's mean frame
         (`averaging.local_frame_variance`), so placement weighs targets for the overlay.
+    drift_rejection: (with drift_weighting) after the robust mean's outlier rule, test
+        every sighting again against the fitted drift model (`averaging.drift_inliers`:
+        predicted from the target's other inliers, so a pass the walk carried away
+        from the mean comes back and a gross error stays out) and refit the model.
+        False: the robust mean's inliers alone.
     tilt_sigma_deg: (ours) the roll/pitch error of each session's gravity alignment
         (degrees, 1 sigma per axis, as the SLAM reports it). None: no prior (dof 6
         fits the tilt from the targets alone, dof 4 holds it at zero). Given: the
@@ -186,6 +191,7 @@ class MergeOptions:
     drift_rotation_sigma_deg: float = 0.2
     drift_translation_sigma_m: float = 0.02
     drift_weighting: bool = True
+    drift_rejection: bool = True
     tilt_sigma_deg: float | None = None
     drift_rate_rotation_deg_per_sqrt_s: float = 0.02
     drift_rate_translation_m_per_sqrt_s: float = 0.003

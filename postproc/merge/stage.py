@@ -15,6 +15,9 @@ in time from that anchor tells less about the target's pose in the frame: a
 random-walk drift model, fitted per session from the passes over its targets,
 weighs the inliers by generalised least squares and gives a covariance that
 includes the drift (`averaging.estimate_drift_model`, `drift_weighted_mean`).
+The robust mean's rule cuts the passes the walk carried furthest from the mean,
+so each sighting is then tested again against that model (predicted from the
+target's other sightings, `averaging.drift_inliers`) and the model refitted.
 Then sessions are placed in the reference session's frame
 (`align.place_sessions`): 4 DoF (yaw and translation) when the sessions are
 depth-fused (gravity-aligned with absolute z), otherwise 6 DoF; with
@@ -66,7 +69,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, cast
@@ -86,6 +89,7 @@ from postproc.merge.averaging import (
     PoseAverage,
     calibrate_drift_model,
     clustered_covariance,
+    drift_inliers,
     drift_weighted_mean,
     drift_weights,
     estimate_drift_model,
@@ -139,6 +143,10 @@ class Observation:
     session_from_target: FloatArray
     paper_session_from_target: FloatArray | None = None
     pnp_variance: FloatArray | None = None
+
+
+#: Per target: its observations, their robust mean and their pass labels.
+_Robust = dict[str, tuple[list[Observation], PoseAverage, npt.NDArray[np.int64]]]
 
 
 def run(
@@ -627,6 +635,8 @@ def _average_ours(
 ) -> dict[str, dict[str, PoseAverage]]:
     """Per session and target: robust mean (outliers out), then the drift-weighted mean
     (or, with `drift_weighting` off, the robust mean with the local-frame variance).
+    With drift weighting and `drift_rejection` the inliers are chosen again against the
+    fitted drift model, and the model refitted, before its calibration.
 
     The drift model (per-keyframe noise, drift rate) is fitted once per session
     over all its targets' inliers, since the targets share that session's SLAM;
@@ -636,7 +646,7 @@ def _average_ours(
     averages: dict[str, dict[str, PoseAverage]] = {}
     for session in sessions:
         averages[session.name] = {}
-        robust: dict[str, tuple[list[Observation], PoseAverage, npt.NDArray[np.int64]]] = {}
+        robust: _Robust = {}
         for name in target_names:
             chosen = [o for o in observations if o.session == session.name and o.target == name]
             if not chosen:
@@ -669,14 +679,12 @@ def _average_ours(
             # than its error against the truth with the yaw's prior on all three axes).
             prior_rate_tilt_rad2_per_s=0.0,
         )
+        model = _fit_inliers(fit, robust, anchor_ns)
+        if model.pass_pairs > 0 and options.drift_weighting and options.drift_rejection:
+            model = _drift_rejection(fit, robust, anchor_ns, model)
         inlier_times = [_seconds(c, anchor_ns)[a.inliers] for c, a, _ in robust.values()]
         inlier_passes = [passes[a.inliers] for _, a, passes in robust.values()]
         inlier_pnp = [_pnp_variances(c)[a.inliers] for c, a, _ in robust.values()]
-        model = fit(
-            [average.residuals[average.inliers] for _, average, _ in robust.values()],
-            inlier_times,
-            inlier_passes,
-        )
         if model.pass_pairs > 0 and options.drift_weighting:
             model = calibrate_drift_model(
                 model,
@@ -749,6 +757,45 @@ def _average_ours(
                 residuals=pose_residuals(poses, pose),
             )
     return averages
+
+
+def _fit_inliers(fit: Callable[..., DriftModel], robust: _Robust, anchor_ns: int) -> DriftModel:
+    """The session's drift model from its targets' current inliers."""
+    return fit(
+        [average.residuals[average.inliers] for _, average, _ in robust.values()],
+        [_seconds(c, anchor_ns)[a.inliers] for c, a, _ in robust.values()],
+        [passes[a.inliers] for _, a, passes in robust.values()],
+    )
+
+
+def _drift_rejection(
+    fit: Callable[..., DriftModel],
+    robust: _Robust,
+    anchor_ns: int,
+    model: DriftModel,
+    rounds: int = 3,
+) -> DriftModel:
+    """Each target's inliers again, against the drift model (`averaging.drift_inliers`),
+    and the model refitted, until they settle (at most `rounds` times). `robust` is
+    updated in place; returns the last model."""
+    for _ in range(rounds):
+        changed = False
+        for name, (chosen, average, passes) in robust.items():
+            kept = drift_inliers(
+                np.array([o.session_from_target for o in chosen]),
+                _seconds(chosen, anchor_ns),
+                model,
+                start=average.pose,
+                inliers=average.inliers,
+                observation_variance=_pnp_variances(chosen),
+            )
+            if not np.array_equal(kept, average.inliers):
+                changed = True
+                robust[name] = (chosen, dataclasses.replace(average, inliers=kept), passes)
+        if not changed:
+            break
+        model = _fit_inliers(fit, robust, anchor_ns)
+    return model
 
 
 def _pnp_variances(chosen: Sequence[Observation]) -> FloatArray:

@@ -371,7 +371,7 @@ def test_drift_weighting_leans_on_the_first_pass(tmp_path, caplog):
         (folder / "keyframes.tum").unlink()
         write_tum(folder / "keyframes.tum", Trajectory(keyframes.stamps_ns, drifted))
     expected = _relative_truth(truth, "dive1", "dive2")
-    errors, sigmas = {}, {}
+    errors, sigmas, rejected = {}, {}, {}
     for weighting in (True, False):
         out = tmp_path / f"merged_{weighting}"
         with caplog.at_level("INFO", logger="postproc.merge.stage"):
@@ -386,6 +386,10 @@ def test_drift_weighting_leans_on_the_first_pass(tmp_path, caplog):
         entry = document["sessions"]["dive2"]
         errors[weighting] = pose_difference(np.array(entry["T_W_S"]), expected)[1]
         sigmas[weighting] = entry["sigma_translation_m"]
+        targets = json.loads((out / "targets.json").read_text())
+        rejected[weighting] = sum(
+            seen["rejected"] for target in targets.values() for seen in target["sessions"].values()
+        )
         if weighting:
             assert "from 2 pass pairs" in caplog.text
             # Two pairs of passes measure the rate poorly: the model says so.
@@ -395,6 +399,9 @@ def test_drift_weighting_leans_on_the_first_pass(tmp_path, caplog):
             assert min(model["variance_calibration"][3:]) > 1.2
             assert 0.005 < np.mean(model["drift_sigma_per_sqrt_s"][3:]) < 0.02
     assert errors[True] < 0.5 * errors[False]
+    # No gross error was planted: measured against the drift model every sighting stays
+    # (the robust mean's rule alone cuts one of a drifted pass).
+    assert rejected[True] == 0 and rejected[False] >= 1
     assert errors[True] < 0.03
     # The covariance includes the drift of the first passes: the same size as the error.
     assert 0.3 < errors[True] / sigmas[True] < 3.0
