@@ -171,7 +171,8 @@ class MergeOptions:
         time (35 against 1.7 s), and after SfM every merge gives the same maps
         (docs/benchmarks.md, "Merge").
         True: always. False: targets only, placed session by session
-        (`align.place_sessions`).
+        (`align.place_sessions`), or, where a session's drift was measured, by the
+        joint estimate with the targets' edges alone (their shared drift counted).
     places: natural-feature settings (`places.PlaceOptions`).
     depth_sigma_m: (joint) each depth-fused session's absolute-depth error (m, 1 sigma):
         the prior on the sessions' relative z.

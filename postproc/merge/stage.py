@@ -22,7 +22,10 @@ Then sessions are placed in the reference session's frame
 (`align.place_sessions`): 4 DoF (yaw and translation) when the sessions are
 depth-fused (gravity-aligned with absolute z), otherwise 6 DoF; with
 `tilt_sigma_deg` (the SLAM's roll/pitch uncertainty) a 6-DoF fit whose
-relative roll and pitch get that gravity prior.
+relative roll and pitch get that gravity prior. Where a session's drift was
+measured, its targets share that drift (their means lean on the same first
+passes), so the sessions are placed by the joint estimate below, with the
+targets' edges only, which counts that correlation in the covariance.
 With `natural_features` ("auto", the default, when the targets leave a session
 unplaced or there are none; True: always) every pair of sessions is also matched
 through the wreck itself (`places`, `natural`: bag-of-words recognition over a
@@ -263,6 +266,23 @@ def _build(
             options, sessions, reference, dof, tilt_prior_deg, estimates, pairs, shares, rates
         )
         placements = _joint_placements(joint, sessions)
+    elif options.method == "ours" and shares:
+        # Targets alone, but the targets of one session share its drift (both lean on
+        # its first passes): placed one by one as independent, the session frame's
+        # covariance was too small (whitened 1.23 over 6 axes on the wreck scene);
+        # the joint estimate counts the shared drift (`joint.DriftShare`).
+        joint = _solve_joint(
+            options,
+            sessions,
+            reference,
+            dof,
+            tilt_prior_deg,
+            estimates,
+            (),
+            shares,
+            _drift_rates(options, sessions, drift_models),
+        )
+        placements = _joint_placements(joint, sessions)
     elif target_placements is not None:
         placements = target_placements
     elif options.method == "ours":
@@ -313,12 +333,12 @@ def _build(
     for name, model in drift_models.items():
         document["sessions"][name]["drift_model"] = _drift_model_entry(model)
     document["natural_features"] = use_natural
-    if use_natural:
+    if joint is not None:
         document.update(_joint_document(joint, pairs))
         for name, entry in document["sessions"].items():
-            if entry["placed"] and joint is not None:
+            if entry["placed"]:
                 _joint_session_entry(entry, name, joint, dof)
-            if not entry["placed"]:
+            elif use_natural:
                 entry["reason"] = (
                     "no chain of shared targets or consistent natural-feature matches to the "
                     "reference (see pairs for the evidence)"

@@ -390,7 +390,11 @@ def test_drift_weighting_leans_on_the_first_pass(tmp_path, caplog):
         rejected[weighting] = sum(
             seen["rejected"] for target in targets.values() for seen in target["sessions"].values()
         )
+        # Measured drift: the targets of one session share it, so the joint estimate
+        # places the sessions (with a residual per target); else one by one.
+        assert ("estimator" in document) == weighting
         if weighting:
+            assert {c["kind"] for c in document["constraints"]} == {"target"}
             assert "from 2 pass pairs" in caplog.text
             # Two pairs of passes measure the rate poorly: the model says so.
             model = entry["drift_model"]
