@@ -589,8 +589,9 @@ def drift_inliers(
     freedom) marks it an outlier. A sighting in a drifted pass is predicted from its
     own pass's neighbours and stays; a gross error does not. start: (4, 4) the
     linearisation point (the robust mean). times_s, observation_variance: as in
-    `drift_weighted_mean`. Returns the new inliers (N,); with fewer than two inliers
-    given, `inliers` unchanged. Raises ValueError for malformed input.
+    `drift_weighted_mean`. Returns the new inliers (N,); `inliers` unchanged with fewer
+    than two given, or when the model explains none of them (it does not describe this
+    target: nothing to choose by). Raises ValueError for malformed input.
     """
     T = _as_poses(poses, "drift_inliers")
     n = T.shape[0]
@@ -612,7 +613,7 @@ def drift_inliers(
     )
     d2 = _prediction_distances(pose_residuals(T, start), tau, kept, model, extra)
     result: BoolArray = d2 <= _CHI2_6DOF[chi2_probability]
-    return result
+    return result if np.any(result) else kept.copy()
 
 
 def _prediction_distances(

@@ -269,8 +269,9 @@ def _build(
     elif options.method == "ours" and shares:
         # Targets alone, but the targets of one session share its drift (both lean on
         # its first passes): placed one by one as independent, the session frame's
-        # covariance was too small (whitened 1.23 over 6 axes on the wreck scene);
-        # the joint estimate counts the shared drift (`joint.DriftShare`).
+        # covariance was too small (squared Mahalanobis over 6: 1.23 on 32 draws of the
+        # wreck scene, 1.02 this way; docs/benchmarks.md, "Merge"): the joint estimate
+        # counts the shared drift (`joint.DriftShare`).
         joint = _solve_joint(
             options,
             sessions,

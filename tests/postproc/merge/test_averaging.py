@@ -293,6 +293,14 @@ def test_drift_inliers_predict_each_sighting_from_the_others():
     np.testing.assert_allclose(got, expected, rtol=1e-8)
     with pytest.raises(ValueError, match="chi2_probability"):
         drift_inliers(poses, times, model, start=np.eye(4), inliers=kept, chi2_probability=0.5)
+    # A model that explains none of them (two sightings a metre apart, a sharp SLAM
+    # with no drift): nothing to choose by, the inliers stay.
+    sharp = DriftModel(drift_rate=np.zeros(6), noise=NOISE / 100.0, pass_pairs=2)
+    apart = np.array([np.eye(4), make_pose(np.eye(3), [1.0, 0.0, 0.0])])
+    both = np.ones(2, dtype=bool)
+    assert np.array_equal(
+        drift_inliers(apart, [1.0, 2.0], sharp, start=np.eye(4), inliers=both), both
+    )
     # Fewer than two inliers: nothing to predict from.
     one_left = np.zeros(12, dtype=bool)
     one_left[0] = True
