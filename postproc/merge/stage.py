@@ -148,8 +148,28 @@ class Observation:
     pnp_variance: FloatArray | None = None
 
 
-#: Per target: its observations, their robust mean and their pass labels.
-_Robust = dict[str, tuple[list[Observation], PoseAverage, npt.NDArray[np.int64]]]
+@dataclass(frozen=True)
+class _Sightings:
+    """One target's observations in one session as arrays, taken once, and their robust
+    mean (whose `inliers` the drift model may choose again)."""
+
+    poses: FloatArray  # (N, 4, 4) T_S_m
+    times_s: FloatArray  # (N,) seconds since the session's anchor
+    passes: npt.NDArray[np.int64]  # (N,) pass labels
+    pnp: FloatArray  # (N, 6) PnP variances in the session frame
+    average: PoseAverage
+
+    @property
+    def inlier_times(self) -> FloatArray:
+        return self.times_s[self.average.inliers]
+
+    @property
+    def inlier_passes(self) -> npt.NDArray[np.int64]:
+        return self.passes[self.average.inliers]
+
+    @property
+    def inlier_pnp(self) -> FloatArray:
+        return self.pnp[self.average.inliers]
 
 
 def run(
@@ -667,14 +687,15 @@ def _average_ours(
     averages: dict[str, dict[str, PoseAverage]] = {}
     for session in sessions:
         averages[session.name] = {}
-        robust: _Robust = {}
+        robust: dict[str, _Sightings] = {}
         for name in target_names:
             chosen = [o for o in observations if o.session == session.name and o.target == name]
             if not chosen:
                 continue
             weights = np.array([o.corner_count for o in chosen], dtype=np.float64)
+            poses = np.array([o.session_from_target for o in chosen])
             average = robust_pose_mean(
-                np.array([o.session_from_target for o in chosen]),
+                poses,
                 weights=weights,
                 rotation_mean=options.rotation_mean,
                 outlier_rule=options.outlier_rule,
@@ -688,8 +709,13 @@ def _average_ours(
                 prior_rotation_sigma_rad=np.deg2rad(options.drift_rotation_sigma_deg),
                 prior_translation_sigma_m=options.drift_translation_sigma_m,
             )
-            robust[name] = (chosen, dataclasses.replace(average, covariance=covariance), passes)
-        anchor_ns = session.anchor_ns
+            robust[name] = _Sightings(
+                poses,
+                _seconds(chosen, session.anchor_ns),
+                passes,
+                _pnp_variances(chosen),
+                dataclasses.replace(average, covariance=covariance),
+            )
         fit = functools.partial(
             estimate_drift_model,
             prior_rate_rotation_rad2_per_s=np.deg2rad(options.drift_rate_rotation_deg_per_sqrt_s)
@@ -700,19 +726,16 @@ def _average_ours(
             # than its error against the truth with the yaw's prior on all three axes).
             prior_rate_tilt_rad2_per_s=0.0,
         )
-        model = _fit_inliers(fit, robust, anchor_ns)
+        model = _fit_inliers(fit, robust)
         if model.pass_pairs > 0 and options.drift_weighting and options.drift_rejection:
-            model = _drift_rejection(fit, robust, anchor_ns, model)
-        inlier_times = [_seconds(c, anchor_ns)[a.inliers] for c, a, _ in robust.values()]
-        inlier_passes = [passes[a.inliers] for _, a, passes in robust.values()]
-        inlier_pnp = [_pnp_variances(c)[a.inliers] for c, a, _ in robust.values()]
+            model = _drift_rejection(fit, robust, model)
         if model.pass_pairs > 0 and options.drift_weighting:
             model = calibrate_drift_model(
                 model,
-                inlier_times,
-                inlier_passes,
+                [t.inlier_times for t in robust.values()],
+                [t.inlier_passes for t in robust.values()],
                 fit,
-                observation_variance=inlier_pnp,
+                observation_variance=[t.inlier_pnp for t in robust.values()],
             )
         if models is not None and model.pass_pairs > 0:
             models[session.name] = model
@@ -720,26 +743,20 @@ def _average_ours(
             # No target filmed in two passes: the session's drift is not measured, and
             # the prior alone should not reweigh keyframes; keep the robust means.
             log.info("%s: no target seen in two passes: drift not measured", session.name)
-            averages[session.name] = {name: value[1] for name, value in robust.items()}
+            averages[session.name] = {name: t.average for name, t in robust.items()}
             continue
         if not options.drift_weighting:
             # Equal passes (the overlay of the maps): the targets' local frames differ by
             # the drift between them, which no rigid placement absorbs; it joins each
             # target's covariance so the placement weighs the targets for the overlay.
             variance = local_frame_variance(
-                model,
-                [
-                    float(np.mean(_seconds(chosen, anchor_ns)[average.inliers]))
-                    for chosen, average, _ in robust.values()
-                ],
+                model, [float(np.mean(t.inlier_times)) for t in robust.values()]
             )
             averages[session.name] = {
                 name: dataclasses.replace(
-                    average, covariance=average.covariance + np.diag(extra_variance)
+                    t.average, covariance=t.average.covariance + np.diag(extra_variance)
                 )
-                for (name, (_, average, _)), extra_variance in zip(
-                    robust.items(), variance, strict=True
-                )
+                for (name, t), extra_variance in zip(robust.items(), variance, strict=True)
             }
             continue
         log.info(
@@ -755,44 +772,40 @@ def _average_ours(
             np.mean(model.calibration[:3]),
             np.mean(model.calibration[3:]),
         )
-        for (name, (chosen, average, _)), times, pnp in zip(
-            robust.items(), inlier_times, inlier_pnp, strict=True
-        ):
-            poses = np.array([o.session_from_target for o in chosen])
+        for name, t in robust.items():
             pose, covariance = drift_weighted_mean(
-                poses[average.inliers],
-                times,
+                t.poses[t.average.inliers],
+                t.inlier_times,
                 model,
-                start=average.pose,
-                observation_variance=pnp,
+                start=t.average.pose,
+                observation_variance=t.inlier_pnp,
             )
             if shares is not None:
-                weights = drift_weights(times, model, observation_variance=pnp)
+                weights = drift_weights(t.inlier_times, model, observation_variance=t.inlier_pnp)
                 shares[session.name, name] = DriftShare(
-                    session.name, times, weights[:, :, None] * np.eye(6)[None]
+                    session.name, t.inlier_times, weights[:, :, None] * np.eye(6)[None]
                 )
             averages[session.name][name] = dataclasses.replace(
-                average,
+                t.average,
                 pose=pose,
                 covariance=covariance,
-                residuals=pose_residuals(poses, pose),
+                residuals=pose_residuals(t.poses, pose),
             )
     return averages
 
 
-def _fit_inliers(fit: Callable[..., DriftModel], robust: _Robust, anchor_ns: int) -> DriftModel:
+def _fit_inliers(fit: Callable[..., DriftModel], robust: dict[str, _Sightings]) -> DriftModel:
     """The session's drift model from its targets' current inliers."""
     return fit(
-        [average.residuals[average.inliers] for _, average, _ in robust.values()],
-        [_seconds(c, anchor_ns)[a.inliers] for c, a, _ in robust.values()],
-        [passes[a.inliers] for _, a, passes in robust.values()],
+        [t.average.residuals[t.average.inliers] for t in robust.values()],
+        [t.inlier_times for t in robust.values()],
+        [t.inlier_passes for t in robust.values()],
     )
 
 
 def _drift_rejection(
     fit: Callable[..., DriftModel],
-    robust: _Robust,
-    anchor_ns: int,
+    robust: dict[str, _Sightings],
     model: DriftModel,
     rounds: int = 3,
 ) -> DriftModel:
@@ -801,21 +814,23 @@ def _drift_rejection(
     updated in place; returns the last model."""
     for _ in range(rounds):
         changed = False
-        for name, (chosen, average, passes) in robust.items():
+        for name, t in robust.items():
             kept = drift_inliers(
-                np.array([o.session_from_target for o in chosen]),
-                _seconds(chosen, anchor_ns),
+                t.poses,
+                t.times_s,
                 model,
-                start=average.pose,
-                inliers=average.inliers,
-                observation_variance=_pnp_variances(chosen),
+                start=t.average.pose,
+                inliers=t.average.inliers,
+                observation_variance=t.pnp,
             )
-            if not np.array_equal(kept, average.inliers):
+            if not np.array_equal(kept, t.average.inliers):
                 changed = True
-                robust[name] = (chosen, dataclasses.replace(average, inliers=kept), passes)
+                robust[name] = dataclasses.replace(
+                    t, average=dataclasses.replace(t.average, inliers=kept)
+                )
         if not changed:
             break
-        model = _fit_inliers(fit, robust, anchor_ns)
+        model = _fit_inliers(fit, robust)
     return model
 
 
