@@ -389,7 +389,10 @@ class SlamOptions:
         10-minute 960x540 dive: SLAM 181 s against 250 s (3.3x real time), ATE 1.7
         against 1.5 cm, SfM 1.0 against 0.9 cm, mesh at 5 cm 97.3 / 55.9 % against
         97.2 / 58.4 %; bench_slam.py --speed (60 s): 3.85 / 4.38x against 2.40 / 2.78x
-        real time from PNG / H.264, ATE 6.9 / 14.5 mm against 5.2 / 11.5 mm.
+        real time from PNG / H.264, ATE 6.9 / 14.5 mm against 5.2 / 11.5 mm. The ATE
+        loss is not a draw: over four draws of the tracks (bias lags 8-60) it was 1.16x /
+        1.27x every image's in the mean and worse in all eight pairs, with as many
+        keyframes or more (docs/benchmarks.md, SLAM, stop 50).
     min_tracks_ok: a frame with fewer tracked features counts as a tracking failure.
     max_speed_m_s: a keyframe-to-keyframe speed above this (m/s) means the estimate has
         diverged (too few landmarks to hold the IMU integration: scenes beyond
