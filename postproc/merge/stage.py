@@ -263,45 +263,33 @@ def _build(
         )
         if use_natural:
             log.info("merge: the targets do not place every session; matching natural features")
-    if use_natural:
-        from postproc.merge.natural import match_sessions
-
-        # Gravity on the pairs' roll/pitch: the IMUs' tilt error (2σ² for the relative
-        # tilt), unless the joint estimate puts that prior on each session itself.
-        if tilt_prior_deg is not None or dof == 4:
-            tilt_variance = 1.0
-        else:
-            tilt_variance = 2.0 * np.deg2rad(options.places.gravity_sigma_deg) ** 2
+    # Targets alone where a session's drift was measured: its targets share that drift
+    # (both lean on its first passes), and placed one by one as independent the session
+    # frame's covariance was too small (squared Mahalanobis over 6: 1.23 on 32 draws of
+    # the wreck scene, 1.02 this way; docs/benchmarks.md, "Merge"), so they too go
+    # through the joint estimate, which counts the shared drift (`joint.DriftShare`).
+    if use_natural or (options.method == "ours" and shares):
         rates = _drift_rates(options, sessions, drift_models)
-        # Each keyframe's own pose error where the targets measured it (their drift
-        # model's per-observation noise), else the places' prior.
-        pairs = match_sessions(
-            options.places,
-            sessions,
-            drift_rates=rates,
-            tilt_variance_rad2=tilt_variance,
-            keyframe_noise={name: model.scaled_noise for name, model in drift_models.items()},
-        )
+        if use_natural:
+            from postproc.merge.natural import match_sessions
+
+            # Gravity on the pairs' roll/pitch: the IMUs' tilt error (2σ² for the
+            # relative tilt), unless the joint estimate puts that prior on each session.
+            if tilt_prior_deg is not None or dof == 4:
+                tilt_variance = 1.0
+            else:
+                tilt_variance = 2.0 * np.deg2rad(options.places.gravity_sigma_deg) ** 2
+            # Each keyframe's own pose error where the targets measured it (their drift
+            # model's per-observation noise), else the places' prior.
+            pairs = match_sessions(
+                options.places,
+                sessions,
+                drift_rates=rates,
+                tilt_variance_rad2=tilt_variance,
+                keyframe_noise={name: model.scaled_noise for name, model in drift_models.items()},
+            )
         joint = _solve_joint(
             options, sessions, reference, dof, tilt_prior_deg, estimates, pairs, shares, rates
-        )
-        placements = _joint_placements(joint, sessions)
-    elif options.method == "ours" and shares:
-        # Targets alone, but the targets of one session share its drift (both lean on
-        # its first passes): placed one by one as independent, the session frame's
-        # covariance was too small (squared Mahalanobis over 6: 1.23 on 32 draws of the
-        # wreck scene, 1.02 this way; docs/benchmarks.md, "Merge"): the joint estimate
-        # counts the shared drift (`joint.DriftShare`).
-        joint = _solve_joint(
-            options,
-            sessions,
-            reference,
-            dof,
-            tilt_prior_deg,
-            estimates,
-            (),
-            shares,
-            _drift_rates(options, sessions, drift_models),
         )
         placements = _joint_placements(joint, sessions)
     elif target_placements is not None:

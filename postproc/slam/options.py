@@ -391,8 +391,9 @@ class SlamOptions:
         97.2 / 58.4 %; bench_slam.py --speed (60 s): 3.85 / 4.38x against 2.40 / 2.78x
         real time from PNG / H.264, ATE 6.9 / 14.5 mm against 5.2 / 11.5 mm. The ATE
         loss is not a draw: over four draws of the tracks (bias lags 8-60) it was 1.16x /
-        1.27x every image's in the mean and worse in all eight pairs, with as many
-        keyframes or more (docs/benchmarks.md, SLAM, stop 50).
+        1.27x every image's in the mean and worse in all eight pairs, and not for its
+        fewer keyframes: with more than every image's it was no better (docs/benchmarks.md,
+        SLAM, stop 50).
     min_tracks_ok: a frame with fewer tracked features counts as a tracking failure.
     max_speed_m_s: a keyframe-to-keyframe speed above this (m/s) means the estimate has
         diverged (too few landmarks to hold the IMU integration: scenes beyond
