@@ -6,7 +6,7 @@ Usage:
                                          [--render-width 960 --render-height 540 --fps 30]
     .venv/bin/python bench/bench_slam.py --long [--long-minutes 45] [--window 300]
     .venv/bin/python bench/bench_slam.py --real [--only handheld_a karma ...] [--width PX]
-    .venv/bin/python bench/bench_slam.py --speed [--duration 40] [--seed 1]
+    .venv/bin/python bench/bench_slam.py --speed [--duration 40] [--seed 1] [--width PX]
                                          [--speed-inputs euroc h264]
                                          [--estimator-process auto|on|off]
 
@@ -307,8 +307,10 @@ def speed(
     inputs: list[str],
     estimator_process: Literal["auto", "on", "off"] | None = None,
     rates: dict[str, float | None] | None = None,
+    width: int | None = None,
 ) -> None:
-    """Real-time factor of the stage at its defaults on one rendered 960x540, 30 fps
+    """Real-time factor of the stage at its defaults (the frontend at `width` px when
+    given) on one rendered 960x540, 30 fps
     session (the size and rate of issue #23), from its EuRoC copy (PNG images) and from
     its GoPro-like MP4 imported as a session folder (H.264): video seconds per wall
     second and per CPU second of the process (every thread), with the load average
@@ -347,6 +349,8 @@ def speed(
             clock_ns = _first_frame_ns(euroc) - _first_frame_ns(recording)
         out = work / f"slam_{survey.name}_speed_{kind}"
         options = _with_rates(SlamOptions(), rates)
+        if width is not None:
+            options.frontend = FrontendOptions(width_px=width)
         if estimator_process is not None:
             options.estimator_process = estimator_process
         run_slam(options, recording, out, overwrite=True)
@@ -782,6 +786,7 @@ def main() -> None:
             inputs=args.speed_inputs,
             estimator_process=args.estimator_process,
             rates=rates,
+            width=args.width if "--width" in sys.argv else None,
         )
         return
     if args.real:

@@ -278,7 +278,9 @@ class KltFrontend:
         forward, back to check, then RANSAC; returns the surviving points in `current`,
         their normalised coordinates and their ids."""
         o = self.options
-        window = (o.klt_window_px, o.klt_window_px)
+        # A gyro-seeded flow starts close to its answer: a smaller window will do.
+        side = o.klt_window_unseeded_px if rotation is None else o.klt_window_px
+        window = (side, side)
         criteria = (
             cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
             o.klt_iterations,

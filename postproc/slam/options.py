@@ -26,6 +26,18 @@ class FrontendOptions:
     min_distance_px: minimum spacing of features.
     quality_level: Shi-Tomasi quality relative to the best corner of the cell.
     klt_window_px / klt_levels: Lucas-Kanade window size and pyramid levels.
+    klt_window_unseeded_px: the window when no gyro rotation seeds the flow (the
+        visual-only and stabilised-video paths, the rotation probe). The KLT's cost is
+        per feature and per window pixel, not per image pixel (a 480 or 640 px frontend
+        left the tracking thread's CPU as it was), and a seeded flow starts within a
+        pixel or two of its answer, so the seeded window is 11 px and the unseeded one
+        keeps 15: at 11 px the unseeded EuRoC MH_01 run posed 332 of 600 frames
+        (1.63 % of the path from the Leica) against 468 (0.91 %) at 15. Seeded at 11 px,
+        on 60 s of rendered 960x540, 30 fps video over four draws of the tracks (bias
+        lags 8-60), the ATE means were 4.20 / 5.55 mm (PNG / H.264) against 4.65 /
+        7.26 mm at 15, and the tracking thread's CPU fell by a third; the Karma clip
+        was within 0.57-0.62 % of its path of the drone's log over five lags (1.76-1.80 %
+        at 15) (docs/benchmarks.md, SLAM, stop 51).
     klt_iterations / klt_epsilon_px: Lucas-Kanade stops after this many iterations per
         level or once a step is shorter than this (pixels).
         The KLT was most of the tracking thread's CPU. 10 iterations and 0.03 px
@@ -36,7 +48,8 @@ class FrontendOptions:
         the spread of runs whose gyro seeds differed by a hair (8.0-14.5 and 17.2-32.6
         mm: which tracks survive, and so the ATE, is that sensitive). A 13 px window
         (with 2 or 3 levels) was cheaper still and as accurate on rendered video, but
-        the unseeded visual-only EuRoC MH_01 run and the Karma drone clip then failed.
+        the unseeded visual-only EuRoC MH_01 run and the Karma drone clip then failed
+        (that was before the window depended on the seeding: `klt_window_unseeded_px`).
     klt_check_levels: pyramid levels of the backward (checking) pass, at most
         `klt_levels`. Fewer are cheaper (0 cut the tracking thread by a third on 40 s
         of rendered 960x540 video, frame-to-frame errors against the render's truth
@@ -68,7 +81,8 @@ class FrontendOptions:
     grid_rows: int = 5
     min_distance_px: int = 12
     quality_level: float = 0.01
-    klt_window_px: int = 15
+    klt_window_px: int = 11
+    klt_window_unseeded_px: int = 15
     klt_levels: int = 3
     klt_iterations: int = 10
     klt_epsilon_px: float = 0.03

@@ -255,3 +255,30 @@ def test_the_check_runs_on_klt_check_levels(rendered, monkeypatch) -> None:
         frontend.track(int(stamps[0]), images[0])
         frontend.track(int(stamps[1]), images[1])
         assert levels == expected
+
+
+def test_the_window_is_smaller_only_when_the_gyro_seeds_the_flow(rendered, monkeypatch) -> None:
+    """A gyro-seeded KLT uses `klt_window_px`, an unseeded one `klt_window_unseeded_px`
+    (both passes of each), and seeded tracking at the smaller window still follows the
+    true motion."""
+    windows: list[tuple[int, int]] = []
+    real = cv2.calcOpticalFlowPyrLK
+
+    def spy(*args, **kwargs):
+        windows.append(tuple(kwargs["winSize"]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "calcOpticalFlowPyrLK", spy)
+    stamps, poses, images, renderer = rendered
+    options = FrontendOptions(width_px=480, klt_window_px=9, klt_window_unseeded_px=17)
+    unseeded = KltFrontend(options, renderer.camera)
+    unseeded.track(int(stamps[0]), images[0])
+    unseeded.track(int(stamps[1]), images[1])
+    assert windows == [(17, 17), (17, 17)]
+    windows.clear()
+    seeded = KltFrontend(options, renderer.camera)
+    seeded.track(int(stamps[0]), images[0])
+    rotation = poses[1][:3, :3].T @ poses[0][:3, :3]  # R_Cnow_Cprev
+    frame = seeded.track(int(stamps[1]), images[1], cam_rotation_now_from_prev=rotation)
+    assert windows == [(9, 9), (9, 9)]
+    assert len(frame.track_ids) > 100
