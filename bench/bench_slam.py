@@ -310,11 +310,11 @@ def speed(
     width: int | None = None,
 ) -> None:
     """Real-time factor of the stage at its defaults (the frontend at `width` px when
-    given) on one rendered 960x540, 30 fps
-    session (the size and rate of issue #23), from its EuRoC copy (PNG images) and from
-    its GoPro-like MP4 imported as a session folder (H.264): video seconds per wall
-    second and per CPU second of the process (every thread), with the load average
-    beside them, the CPU seconds of each thread and the ATE."""
+    given) on one rendered 960x540, 30 fps session (the size and rate of issue #23),
+    from its EuRoC copy (PNG images) and from its GoPro-like MP4 imported as a session
+    folder (H.264): video seconds per wall second and per CPU second of the process
+    (every thread), with the load average beside them, the CPU seconds of each thread
+    and the ATE."""
     survey = work / f"survey_1x{duration_s:.0f}s_seed{seed}_960x540@30"
     if not survey.is_dir():
         print(f"-- rendering the survey into {survey} (once)")

@@ -259,8 +259,8 @@ def test_the_check_runs_on_klt_check_levels(rendered, monkeypatch) -> None:
 
 def test_the_window_is_smaller_only_when_the_gyro_seeds_the_flow(rendered, monkeypatch) -> None:
     """A gyro-seeded KLT uses `klt_window_px`, an unseeded one `klt_window_unseeded_px`
-    (both passes of each), and seeded tracking at the smaller window still follows the
-    true motion."""
+    (both passes of each), and the seeded small window lands where the unseeded large one
+    does."""
     windows: list[tuple[int, int]] = []
     real = cv2.calcOpticalFlowPyrLK
 
@@ -273,7 +273,7 @@ def test_the_window_is_smaller_only_when_the_gyro_seeds_the_flow(rendered, monke
     options = FrontendOptions(width_px=480, klt_window_px=9, klt_window_unseeded_px=17)
     unseeded = KltFrontend(options, renderer.camera)
     unseeded.track(int(stamps[0]), images[0])
-    unseeded.track(int(stamps[1]), images[1])
+    wide = unseeded.track(int(stamps[1]), images[1])
     assert windows == [(17, 17), (17, 17)]
     windows.clear()
     seeded = KltFrontend(options, renderer.camera)
@@ -282,3 +282,9 @@ def test_the_window_is_smaller_only_when_the_gyro_seeds_the_flow(rendered, monke
     frame = seeded.track(int(stamps[1]), images[1], cam_rotation_now_from_prev=rotation)
     assert windows == [(9, 9), (9, 9)]
     assert len(frame.track_ids) > 100
+    shared, in_wide, in_seeded = np.intersect1d(
+        wide.track_ids, frame.track_ids, return_indices=True
+    )
+    assert len(shared) > 0.9 * len(frame.track_ids)
+    gaps = np.linalg.norm(wide.pixels[in_wide] - frame.pixels[in_seeded], axis=1)
+    assert np.median(gaps) < 0.1
