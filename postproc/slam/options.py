@@ -25,7 +25,8 @@ class FrontendOptions:
     grid_cols / grid_rows: detection grid; each cell gets an equal share.
     min_distance_px: minimum spacing of features.
     quality_level: Shi-Tomasi quality relative to the best corner of the cell.
-    klt_window_px / klt_levels: Lucas-Kanade window size and pyramid levels.
+    klt_window_px / klt_levels: Lucas-Kanade window size where the gyro seeds the flow,
+        and pyramid levels.
     klt_window_unseeded_px: the window when no gyro rotation seeds the flow (the
         visual-only and stabilised-video paths, the rotation probe). The KLT's cost is
         per feature and per window pixel, not per image pixel (a 480 or 640 px frontend
