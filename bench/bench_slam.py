@@ -774,6 +774,8 @@ def main() -> None:
         rates["max_rate_hz"] = args.max_rate_hz
     if args.min_rate_hz is not None:
         rates["min_rate_hz"] = args.min_rate_hz or None
+    # --speed and --real run the stage's own frontend width unless --width is given.
+    given_width = args.width if "--width" in sys.argv else None
     if args.long:
         long_dive(args.long_minutes, args.window)
         return
@@ -786,12 +788,11 @@ def main() -> None:
             inputs=args.speed_inputs,
             estimator_process=args.estimator_process,
             rates=rates,
-            width=args.width if "--width" in sys.argv else None,
+            width=given_width,
         )
         return
     if args.real:
-        width = args.width if "--width" in sys.argv else None
-        real(args.work, width=width, only=args.only, rates=rates)
+        real(args.work, width=given_width, only=args.only, rates=rates)
         return
     args.work.mkdir(parents=True, exist_ok=True)
     feature_level(args.duration, [0, 1, 2])
