@@ -49,6 +49,8 @@ def test_plan_keeps_session_stages_and_shares_imports_with_the_full_run(
     assert slam.estimator.backend.window_keyframes == QUICK_WINDOW_KEYFRAMES < 150
     assert slam.frontend.max_features == QUICK_MAX_FEATURES < 400
     assert slam.estimator.backend.window_step_keyframes == QUICK_WINDOW_STEP < 100
+    # Every third image: the seeded flow keeps the unseeded window.
+    assert slam.frontend.klt_window_px == slam.frontend.klt_window_unseeded_px == 15
     # The full project keeps its own options.
     full = project.options_for("slam")
     for name in ("pose_graph_rotation_sigma_rad", "pose_graph_translation_sigma_m"):
@@ -59,6 +61,7 @@ def test_plan_keeps_session_stages_and_shares_imports_with_the_full_run(
     assert full.keyframe_images
     assert full.estimator.backend.window_keyframes == 150
     assert full.frontend.max_features == 400
+    assert full.frontend.klt_window_px == 11
     registry = quick_stages(project)
     assert list(registry) == ["calibrate", "import", "slam", "depth"]
     # Imports and calibration go where the full run puts them; slam and depth to quick/.
