@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from shared.errors import InputError
+from shared.formats.png import encode_png
 from shared.fsutil import write_bytes_atomic
 
 # Below this ratio of PINHOLE to source focal length (COLMAP's max_image_size shrank the
@@ -97,9 +98,6 @@ def _write_params(path: Path) -> list[int]:
     import cv2
 
     suffix = path.suffix.lower()
-    if suffix == ".png":
-        # Level 1: a third of the default's time for 5 % more bytes.
-        return [cv2.IMWRITE_PNG_COMPRESSION, 1]
     if suffix in (".jpg", ".jpeg"):
         return [cv2.IMWRITE_JPEG_QUALITY, 95]
     return []
@@ -129,10 +127,14 @@ def undistort_image(source: Path, target: Path, image_map: ImageMap) -> None:
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0,
     )
-    ok, encoded = cv2.imencode(target.suffix, out, _write_params(target))
-    if not ok:
-        raise InputError(f"{target}: cannot encode the undistorted image as {target.suffix}")
-    write_bytes_atomic(target, encoded.tobytes(), overwrite=True)
+    if target.suffix.lower() == ".png":
+        data = encode_png(out)  # (shared.formats.png: a third of OpenCV's level-1 time)
+    else:
+        ok, encoded = cv2.imencode(target.suffix, out, _write_params(target))
+        if not ok:
+            raise InputError(f"{target}: cannot encode the undistorted image as {target.suffix}")
+        data = encoded.tobytes()
+    write_bytes_atomic(target, data, overwrite=True)
 
 
 def undistort_images(
