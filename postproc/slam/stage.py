@@ -62,6 +62,7 @@ import numpy as np
 
 from postproc.slam.estimator import SlamResult
 from postproc.slam.estimator_process import (
+    BusyProbe,
     EstimatorProcess,
     EstimatorRunner,
     EstimatorSetup,
@@ -284,6 +285,8 @@ def _build(
     imu_yaml: Path | str | None,
 ) -> None:
     """The SLAM run itself, written into the empty folder `folder`."""
+    # Whether a core is free for the estimator's process, measured while the setup runs.
+    probe = BusyProbe() if options.estimator_process == "auto" else None
     # The images to use (a bad rate is refused before any work).
     thinning = RateThinning(options.min_rate_hz, min_step_ns=min_frame_step_ns(options.max_rate_hz))
     if options.max_speed_m_s is not None and not options.max_speed_m_s > 0:
@@ -362,7 +365,7 @@ def _build(
     total = source.frame_count
     if options.max_frames is not None:
         total = min(total, options.max_frames)
-    in_a_process = use_a_process(options.estimator_process, total)
+    in_a_process = use_a_process(options.estimator_process, total, probe=probe)
     tracking_failures = 0
     coverage = (
         ImuCoverage.of(source.imu, ns_from_seconds(calibration.timeshift_cam_imu_s))

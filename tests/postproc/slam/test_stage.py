@@ -646,6 +646,40 @@ def test_busy_cores_come_from_the_cpu_counters_not_the_lagging_load_average() ->
         assert busy is None
 
 
+def test_the_background_probe_leaves_out_this_process_own_cpu(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from postproc.slam import estimator_process
+    from postproc.slam.estimator_process import MIN_FRAMES, BusyProbe, use_a_process
+
+    def stat(user: int, idle: int) -> str:
+        return f"cpu  {user} 0 0 {idle} 0 0 0 0 0 0\ncpu0 1 0 0 1\ncpu1 1 0 0 1\n"
+
+    class Clock:  # a 1 s window in which this process used `own` CPU seconds
+        def __init__(self, own: float) -> None:
+            self.own, self.calls = own, 0
+
+        def process_time(self) -> float:
+            self.calls += 1
+            return 0.0 if self.calls == 1 else self.own
+
+        def monotonic(self) -> float:
+            return 0.0 if self.calls <= 1 else 1.0
+
+        def sleep(self, seconds: float) -> None:
+            pass
+
+    for own, expected in [(0.7, 0.5), (0.0, 1.2), (2.0, 0.0)]:
+        readings = iter([stat(1000, 500), stat(1060, 540)])  # 1.2 of 2 cores busy
+        monkeypatch.setattr(estimator_process, "_read_proc_stat", readings.__next__)
+        monkeypatch.setattr(estimator_process, "time", Clock(own))
+        probe = BusyProbe()
+        assert probe.result() == pytest.approx(expected)
+    # The stage's choice takes the probe's figure: 0 other cores busy here.
+    two_cores = len(os.sched_getaffinity(0)) >= 2
+    assert use_a_process("auto", MIN_FRAMES, probe=probe) == two_cores
+
+
 CTRL_C_SCRIPT = """
 import signal, sys, time
 # As in a terminal's job: a test runner's worker may ignore SIGINT, and an ignored signal
