@@ -128,7 +128,9 @@ def undistort_image(source: Path, target: Path, image_map: ImageMap) -> None:
         borderValue=0,
     )
     if target.suffix.lower() == ".png":
-        data = encode_png(out)  # (shared.formats.png: a third of OpenCV's level-1 time)
+        # zlib-ng's level 2: half the time of OpenCV's level 1 and a few % fewer bytes
+        # (its level 1 is faster still but a third larger on these smooth resamplings).
+        data = encode_png(out, level=2)
     else:
         ok, encoded = cv2.imencode(target.suffix, out, _write_params(target))
         if not ok:

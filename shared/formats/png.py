@@ -1,13 +1,15 @@
 """PNG files of 8-bit images, written fast: every row Up-filtered, deflated by zlib-ng.
 
 Where the pipeline writes many large images (SLAM keyframes from video, the dense
-stage's undistorted images), encoding was most of the cost: OpenCV's PNG writer took
-21 ms for a 960x540 colour frame at its default settings and 35 ms at level 1
-(opencv-python-headless 5.0, one core), zlib's deflate being the slow part. The Up
-filter (each byte less the byte above it) is one NumPy subtraction, and zlib-ng's
-level 1 deflates the result in 9 ms into as many bytes as OpenCV's default (991 against
-960 KB for a rendered wreck frame). The file is an ordinary PNG (one IDAT chunk), the
-same pixels any reader decodes.
+stage's undistorted images), encoding was much of the cost: OpenCV's PNG writer
+(opencv-python-headless 5.0, one core) took 19-22 ms for a 960x540 colour frame at its
+default settings and 36-40 ms at level 1, zlib's deflate being the slow part. The Up
+filter (each byte less the byte above it) is one NumPy subtraction, and zlib-ng
+deflates the result faster: level 1 in 12-16 ms (as many bytes as OpenCV's default on
+a keyframe, 929 against 889 kB; a third more on a smooth resampled image), level 2 in
+17-24 ms (671 and 728 kB: fewer bytes than OpenCV at either setting). One-off timings,
+stop 52. The file is an ordinary PNG (one IDAT chunk): any reader decodes the same
+pixels.
 
 Layout (PNG specification, ISO/IEC 15948): the 8-byte signature, then chunks of
 (length, type, data, CRC-32 of type and data), big-endian: IHDR (width, height, bit
