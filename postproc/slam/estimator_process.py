@@ -183,10 +183,12 @@ class BusyProbe:
     that its window overlaps that work instead of adding to the wall time (stop 52: the
     window was 0.5 of a 60 s run's 21-24 s). The CPU time this process spent in the
     window is left out: it is the stage's own setup, not another program's load.
-    `result` waits for the window to end."""
+    `result` waits for the window to end; `cancel` ends it at once (a run that needs no
+    answer, or fails first, leaves no thread behind)."""
 
     def __init__(self, window_s: float = BUSY_WINDOW_S) -> None:
         self._busy: float | None = None
+        self._cancelled = threading.Event()
         self._thread = threading.Thread(
             target=self._measure, args=(window_s,), name="slam-busy-probe", daemon=True
         )
@@ -195,7 +197,8 @@ class BusyProbe:
     def _measure(self, window_s: float) -> None:
         try:
             before, own_before, start = _read_proc_stat(), time.process_time(), time.monotonic()
-            time.sleep(window_s)
+            if self._cancelled.wait(window_s):
+                return
             after, own, elapsed = (
                 _read_proc_stat(),
                 time.process_time() - own_before,
@@ -208,9 +211,15 @@ class BusyProbe:
             self._busy = max(busy - own / elapsed, 0.0)
 
     def result(self) -> float | None:
-        """Cores busy with other work over the window (None where /proc/stat is missing)."""
+        """Cores busy with other work over the window (None where /proc/stat is missing,
+        or after `cancel`)."""
         self._thread.join()
         return self._busy
+
+    def cancel(self) -> None:
+        """End the window now (no answer) and wait for the thread."""
+        self._cancelled.set()
+        self._thread.join()
 
 
 def _read_proc_stat() -> str:

@@ -270,9 +270,22 @@ def run(
     stamp = result_stamp(
         "slam", options, recording=input_path, camchain=camchain, imu_yaml=imu_yaml
     )
-    with rebuild(folder, stamp, overwrite=overwrite) as work:
-        if work is not None:
-            _build(options, Path(input_path), work, camchain=camchain, imu_yaml=imu_yaml)
+    # Whether a core is free for the estimator's process, measured while the setup runs.
+    probe = BusyProbe() if options.estimator_process == "auto" else None
+    try:
+        with rebuild(folder, stamp, overwrite=overwrite) as work:
+            if work is not None:
+                _build(
+                    options,
+                    Path(input_path),
+                    work,
+                    camchain=camchain,
+                    imu_yaml=imu_yaml,
+                    probe=probe,
+                )
+    finally:
+        if probe is not None:
+            probe.cancel()  # (a run that never asked, or failed before it did)
     return folder.path
 
 
@@ -283,10 +296,10 @@ def _build(
     *,
     camchain: Path | str | None,
     imu_yaml: Path | str | None,
+    probe: BusyProbe | None = None,
 ) -> None:
-    """The SLAM run itself, written into the empty folder `folder`."""
-    # Whether a core is free for the estimator's process, measured while the setup runs.
-    probe = BusyProbe() if options.estimator_process == "auto" else None
+    """The SLAM run itself, written into the empty folder `folder`; `probe`: the busy-core
+    check started by `run` ("auto")."""
     # The images to use (a bad rate is refused before any work).
     thinning = RateThinning(options.min_rate_hz, min_step_ns=min_frame_step_ns(options.max_rate_hz))
     if options.max_speed_m_s is not None and not options.max_speed_m_s > 0:

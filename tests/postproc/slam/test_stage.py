@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Generator
 from pathlib import Path
 from typing import Any, cast
@@ -673,11 +674,18 @@ def test_the_background_probe_leaves_out_this_process_own_cpu(
         readings = iter([stat(1000, 500), stat(1060, 540)])  # 1.2 of 2 cores busy
         monkeypatch.setattr(estimator_process, "_read_proc_stat", readings.__next__)
         monkeypatch.setattr(estimator_process, "time", Clock(own))
-        probe = BusyProbe()
+        probe = BusyProbe(0.01)
         assert probe.result() == pytest.approx(expected)
     # The stage's choice takes the probe's figure: 0 other cores busy here.
     two_cores = len(os.sched_getaffinity(0)) >= 2
     assert use_a_process("auto", MIN_FRAMES, probe=probe) == two_cores
+    # A run that never asks (or fails first) ends the window at once: no thread left.
+    monkeypatch.undo()
+    waiting = BusyProbe(60.0)
+    started = time.monotonic()
+    waiting.cancel()
+    assert time.monotonic() - started < 30.0  # (a hang guard: it returns at once)
+    assert waiting.result() is None and not _slam_threads()
 
 
 CTRL_C_SCRIPT = """
