@@ -148,10 +148,8 @@ def use_a_process(
     cores = cores or 1
     if frames < MIN_FRAMES or cores < 2:
         return False
-    if busy_cores is None and probe is not None:
-        busy_cores = probe.result()
-    elif busy_cores is None:
-        busy_cores = busy_cores_now()
+    if busy_cores is None:
+        busy_cores = probe.result() if probe is not None else busy_cores_now()
     if busy_cores is None:
         busy_cores = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
     # On busy cores the worker only adds its cost (about 3 CPU s per 40 s of video).
@@ -163,28 +161,23 @@ BUSY_WINDOW_S = 0.5
 
 
 def busy_cores_now(window_s: float = BUSY_WINDOW_S) -> float | None:
-    """Cores busy over the next `window_s` seconds, from the kernel's CPU counters
-    (/proc/stat); None where there are none to read.
+    """Cores busy with other work over the next `window_s` seconds (`BusyProbe`, waited
+    for); None where there are no CPU counters to read.
 
     The 1-minute load average lags: just after another job it still counts that job's
     cores for a minute or more, while a SLAM run lasts minutes to hours.
     """
-    try:
-        before = _read_proc_stat()
-        time.sleep(window_s)
-        after = _read_proc_stat()
-    except OSError:
-        return None
-    return busy_cores_between(before, after)
+    return BusyProbe(window_s).result()
 
 
 class BusyProbe:
-    """`busy_cores_now` in a thread of its own, started before the stage's setup work so
-    that its window overlaps that work instead of adding to the wall time (stop 52: the
-    window was 0.5 of a 60 s run's 21-24 s). The CPU time this process spent in the
-    window is left out: it is the stage's own setup, not another program's load.
-    `result` waits for the window to end; `cancel` ends it at once (a run that needs no
-    answer, or fails first, leaves no thread behind)."""
+    """The cores busy over a window of `window_s` seconds from now, from the kernel's CPU
+    counters (/proc/stat), measured in a thread of its own: the stage starts it before its
+    setup work, so that the window overlaps that work instead of adding to the wall time
+    (stop 52: the window was 0.5 of a 60 s run's 21-24 s). The CPU time this process
+    spent in the window is left out: it is the stage's own work, not another program's
+    load. `result` waits for the window to end; `cancel` ends it at once (a run that needs
+    no answer, or fails first, leaves no thread behind)."""
 
     def __init__(self, window_s: float = BUSY_WINDOW_S) -> None:
         self._busy: float | None = None
