@@ -96,6 +96,7 @@ class BackendStats:
     still_keyframes: int = 0
     rejected_triangulations: int = 0
     gated_observations: int = 0
+    landmark_deferrals: int = 0
     loop_closures: int = 0
     retired_keyframes: int = 0
     frozen_landmarks: int = 0
@@ -972,7 +973,8 @@ class VisualInertialBackend:
         known = [
             i for i, t in enumerate(ids) if t not in self._frozen_points and t in self._landmarks
         ]
-        passes = iter(self._gate(k, [ids[i] for i in known], xy_normalised[known]).tolist())
+        passed = self._gate(k, [ids[i] for i in known], xy_normalised[known])
+        passes = iter(passed.tolist())
         for tid, xy in zip(ids, xy_normalised, strict=True):
             if tid in self._frozen_points:
                 continue  # retired with its keyframes; not re-added as a new landmark
@@ -989,9 +991,19 @@ class VisualInertialBackend:
         self._pending = seen_now
         added = 0
         min_parallax = o.min_parallax_deg
-        for tid, observations in list(seen_now.items()):
-            if len(observations) < o.min_observations:
-                continue
+        # The landmark budget: what this keyframe observes already, then the longest-seen
+        # tracks first (a stable sort keeps the tracker's order among equals).
+        room = (
+            o.max_landmarks_per_keyframe - int(passed.sum())
+            if o.max_landmarks_per_keyframe > 0
+            else len(seen_now)
+        )
+        ready = [item for item in seen_now.items() if len(item[1]) >= o.min_observations]
+        ready.sort(key=lambda item: -len(item[1]))
+        for count, (tid, observations) in enumerate(ready):
+            if added >= room:
+                self.stats.landmark_deferrals += len(ready) - count
+                break
             frames = [i for i, _ in observations]
             xy = np.array([p for _, p in observations])
             session_from_cam = np.array([self._poses[i] @ self.imu_from_cam for i in frames])

@@ -768,6 +768,7 @@ def _backend_counters(backend: VisualInertialBackend) -> dict[str, int]:
         "still_keyframes": s.still_keyframes,
         "rejected_triangulations": s.rejected_triangulations,
         "gated_observations": s.gated_observations,
+        "landmark_deferrals": s.landmark_deferrals,
         "loop_closures": s.loop_closures,
         "pose_graph_loops": s.pose_graph_loops,
         "retired_keyframes": s.retired_keyframes,

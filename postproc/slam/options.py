@@ -159,6 +159,19 @@ class BackendOptions:
     huber_k: Huber threshold in standard deviations (robust to leftover outliers).
     min_parallax_deg: smallest angle between a landmark's extreme rays to add it.
     min_observations: keyframes that must see a track before it becomes a landmark.
+    max_landmarks_per_keyframe: at most this many landmarks get factors at a keyframe's
+        update: those it observes, then new ones (0: no limit). When more tracks are
+        ready to become landmarks than the budget leaves, the longest-seen go first and
+        the others wait (still tracked, their observations kept) for a keyframe with
+        room. ISAM2's re-elimination grows with the landmarks a keyframe touches, and
+        the rendered wreck gives 230-320 a keyframe: at 200 the estimator's CPU fell
+        from 10.3-10.9 to 6.6-7.3 s a minute of 960x540 video (bench_slam --speed,
+        2.97-3.31x real time against 2.78-2.91x), the ATE over five draws of the tracks
+        4.80 / 6.06 mm against 4.70 / 5.38 (PNG / H.264). The real recordings mostly see
+        fewer (the Karma clip at most 59, the hand-held clip 60 in the median); where
+        100-200 cut the hand-held clip's richest keyframes its error held, and only 50,
+        below its median, changed its scale (docs/benchmarks.md, SLAM, stop 53).
+        VINS-Mono's default tracks 150 features.
     max_reprojection_px: triangulation check (frontend pixels).
     max_gate_px: a new observation of a landmark farther than this from its predicted
         projection (frontend pixels) is dropped.
@@ -221,6 +234,7 @@ class BackendOptions:
     huber_k: float = 2.0
     min_parallax_deg: float = 2.0
     min_observations: int = 3
+    max_landmarks_per_keyframe: int = 200
     max_reprojection_px: float = 4.0
     max_gate_px: float = 15.0
     min_depth_m: float = 0.2
