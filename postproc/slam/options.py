@@ -167,7 +167,9 @@ class BackendOptions:
         the rendered wreck gives 230-320 a keyframe: at 200 the estimator's CPU fell
         from 10.3-10.9 to 6.6-7.3 s a minute of 960x540 video (bench_slam --speed,
         2.97-3.31x real time against 2.78-2.91x), the ATE over five draws of the tracks
-        4.80 / 6.06 mm against 4.70 / 5.38 (PNG / H.264). The real recordings mostly see
+        4.80 / 6.06 mm against 4.70 / 5.38 (PNG / H.264), on bench_slam's two rendered
+        sessions 4.46 / 28.9 against 3.96 / 26.6 mm: about a tenth, inside the draws'
+        spread (0 gives it back). The real recordings mostly see
         fewer (the Karma clip at most 59, the hand-held clip 60 in the median); where
         100-200 cut the hand-held clip's richest keyframes its error held, and only 50,
         below its median, changed its scale (docs/benchmarks.md, SLAM, stop 53).
