@@ -169,11 +169,11 @@ class BackendOptions:
         2.97-3.31x real time against 2.78-2.91x), the ATE over five draws of the tracks
         4.80 / 6.06 mm against 4.70 / 5.38 (PNG / H.264), on bench_slam's two rendered
         sessions 4.46 / 28.9 against 3.96 / 26.6 mm: about a tenth, inside the draws'
-        spread (0 gives it back). The real recordings mostly see
-        fewer (the Karma clip at most 59, the hand-held clip 60 in the median); where
-        100-200 cut the hand-held clip's richest keyframes its error held, and only 50,
-        below its median, changed its scale (docs/benchmarks.md, SLAM, stop 53).
-        VINS-Mono's default tracks 150 features.
+        spread (0 gives it back). The real recordings mostly see fewer (the Karma clip
+        at most 59, the hand-held clip 60 in the median); where 100-200 cut the
+        hand-held clip's richest keyframes its error held, and only 50, below its
+        median, changed its scale (docs/benchmarks.md, SLAM, stop 53). VINS-Mono's
+        default tracks 150 features.
     max_reprojection_px: triangulation check (frontend pixels).
     max_gate_px: a new observation of a landmark farther than this from its predicted
         projection (frontend pixels) is dropped.
