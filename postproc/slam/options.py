@@ -164,7 +164,7 @@ class BackendOptions:
         ready to become landmarks than the budget leaves, the longest-seen go first and
         the others wait (still tracked, their observations kept) for a keyframe with
         room. ISAM2's re-elimination grows with the landmarks a keyframe touches, and
-        the rendered wreck gives 230-320 a keyframe: at 200 the estimator's CPU fell
+        the rendered wreck gives 250-320 a keyframe: at 200 the estimator's CPU fell
         from 10.3-10.9 to 6.6-7.3 s a minute of 960x540 video (bench_slam --speed,
         2.97-3.31x real time against 2.78-2.91x), the ATE over five draws of the tracks
         4.80 / 6.06 mm against 4.70 / 5.38 (PNG / H.264), on bench_slam's two rendered
