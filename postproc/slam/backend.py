@@ -993,15 +993,12 @@ class VisualInertialBackend:
         min_parallax = o.min_parallax_deg
         # The landmark budget: what this keyframe observes already, then the longest-seen
         # tracks first (a stable sort keeps the tracker's order among equals).
-        room = (
-            o.max_landmarks_per_keyframe - int(passed.sum())
-            if o.max_landmarks_per_keyframe > 0
-            else len(seen_now)
-        )
+        budget = o.max_landmarks_per_keyframe
+        room = budget - int(passed.sum()) if budget > 0 else None
         ready = [item for item in seen_now.items() if len(item[1]) >= o.min_observations]
         ready.sort(key=lambda item: -len(item[1]))
         for count, (tid, observations) in enumerate(ready):
-            if added >= room:
+            if room is not None and added >= room:
                 self.stats.landmark_deferrals += len(ready) - count
                 break
             frames = [i for i, _ in observations]
