@@ -70,15 +70,21 @@ def test_trim_keeps_supported_triangles() -> None:
 def test_poisson_mesh_of_a_plane(tmp_path: Path) -> None:
     cloud = plane_cloud(np.random.default_rng(1), spacing=0.03)
     fused = write_ply(tmp_path / "fused.ply", cloud)
-    report = mesh(MeshingOptions(num_threads=1), fused, tmp_path / "mesh.ply")
+    options = MeshingOptions(num_threads=1)
+    report = mesh(options, fused, tmp_path / "mesh.ply")
     # 2 m at about 2.3 cm nearest-neighbour spacing (jittered 3 cm grid): 2^7 cells.
     assert report.octree_depth == choose_octree_depth(report.extent_m, report.spacing_m) == 7
     surface = read_ply(tmp_path / "mesh.ply")
     assert surface.faces is not None
     assert report.faces == len(surface.faces) > 500
     assert np.abs(surface.vertices[:, 2]).max() < 0.02
-    # Trimmed to the cloud: nothing beyond the square (plus the trim distance).
-    assert surface.vertices[:, :2].min() > -0.1 and surface.vertices[:, :2].max() < 2.1
+    # Trimmed to the cloud: nothing beyond the square plus the trim distance (spacings or
+    # octree cells, the larger), which Poisson's surface does reach past the edges.
+    cell = report.extent_m / 2.0**report.octree_depth
+    trim = options.trim_distance_spacings * max(report.spacing_m, cell)
+    assert 0.05 < trim < 0.25
+    lo, hi = surface.vertices[:, :2].min(), surface.vertices[:, :2].max()
+    assert -trim - 0.01 < lo < -0.3 * trim and 2.0 + 0.3 * trim < hi < 2.0 + trim + 0.01
     assert surface.colors is not None
     with pytest.raises(OutputExistsError):
         mesh(MeshingOptions(), fused, tmp_path / "mesh.ply")
