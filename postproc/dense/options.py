@@ -175,10 +175,11 @@ class MeshingOptions:
     seconds): depth 10 (1.85 cm cells), trim 2.5, 96.4 / 70.6 %, 26 s; trim 2.0, 96.9 /
     69.8 %; depth 11 (0.93 cm), trim 2.5, 98.0 / 69.2 %, 78 s; depth 11, trim 4.0 (3.7
     cm, the defaults from stop 44 to 54), 97.6 / 70.4 %, 76 s. Finer cells follow edges
-    and thin parts the coarser ones round off; the wider trim keeps the completeness. Stop
-    54's run, trimmed again: 4 spacings 97.5 / 69.2 %, 6 (5.3 cm) 97.3 / 70.2 %, its
-    3-minute prefix 98.2 / 65.8 -> 98.0 / 66.7 %, bench_dense's session 99.7 / 63.7 ->
-    99.6 / 64.2 %: on every scene more completeness than accuracy (the default since 55).
+    and thin parts the coarser ones round off; the wider trim keeps the completeness.
+    Trim 4 -> 6 spacings on the same folders: stop 54's run 97.5 / 69.2 -> 97.3 / 70.2 %,
+    stop 55's 98.3 / 71.3 -> 98.0 / 72.1 %, their 3-minute prefixes 98.2 / 65.8 -> 98.0 /
+    66.7 % and 97.6 / 65.5 -> 97.3 / 66.5 %, bench_dense's session 99.7 / 63.7 -> 99.6 /
+    64.2 %: every scene gains more completeness than it loses accuracy (6 since stop 55).
     """
 
     octree_depth: int | None = None
