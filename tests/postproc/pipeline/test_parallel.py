@@ -106,7 +106,15 @@ def test_adapters_pass_the_map_function(
     assert calls["dense"]["map_fn"](square, [1, 2, 3]) == [1, 4, 9]
     monkeypatch.setattr(postproc.sfm.stage, "run", sfm_with_map)
     stages.run_sfm(None, {"slam": [tmp_path]}, tmp_path / "s", context={"parallel": None})
-    assert calls["sfm"]["map_fn"] is serial_map and calls["sfm"]["merge"] is None
+    # Inline, the stage does its per-image work itself (SfM matches in its one database
+    # instead of a copy of it per chunk of pairs).
+    assert calls["sfm"]["map_fn"] is None and calls["sfm"]["merge"] is None
+    inline = {"parallel": InlineBackend().parallel}
+    stages.run_sfm(None, {"slam": [tmp_path]}, tmp_path / "s", context=inline)
+    assert calls["sfm"]["map_fn"] is None
+    stages.run_sfm(None, {"slam": [tmp_path]}, tmp_path / "s", context=context)
+    pool_map = calls["sfm"]["map_fn"]
+    assert pool_map is not None and pool_map(square, [2, 3]) == [4, 9]
     inputs = {"slam": [tmp_path], "merge": tmp_path / "merge"}
     stages.run_sfm(None, inputs, tmp_path / "s", context={"parallel": None})
     assert calls["sfm"]["merge"] == tmp_path / "merge"
